@@ -1,0 +1,76 @@
+"""Small argument checks shared by the data model (private).
+
+Every helper raises :class:`ValueError` or :class:`TypeError` whose message names the
+argument, the expected shape or range and what was received, as the style guide asks.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["as_array", "as_unit_vector", "describe"]
+
+
+def describe(value: object) -> str:
+    """Return a short description of ``value`` for error messages."""
+    if isinstance(value, np.ndarray):
+        return f"array of shape {value.shape} and dtype {value.dtype}"
+    return f"{type(value).__name__} {value!r}"[:120]
+
+
+def as_array(
+    value: object,
+    name: str,
+    *,
+    shape: tuple[int | None, ...],
+    dtype: type | np.dtype,
+    finite: bool = True,
+) -> np.ndarray:
+    """Return ``value`` as a read-only array of ``dtype`` and ``shape``.
+
+    Parameters
+    ----------
+    value : array_like
+        The input.
+    name : str
+        Argument name used in error messages.
+    shape : tuple of int or None
+        Expected shape; ``None`` matches any length along that axis.
+    dtype : numpy dtype
+        Target dtype; the input is converted (a copy is made when needed).
+    finite : bool, optional
+        Reject NaN and infinite values.
+
+    Returns
+    -------
+    ndarray
+        A read-only array (the input is never mutated; a copy is taken when it was writeable).
+    """
+    try:
+        array = np.array(value, dtype=dtype, copy=True)
+    except (TypeError, ValueError) as exc:
+        raise TypeError(f"{name} must be convertible to a {np.dtype(dtype)} array, got {describe(value)}") from exc
+    expected = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+        raise ValueError(f"{name} must have shape {expected}, got shape {array.shape}")
+    if finite and array.dtype.kind == "f" and not np.isfinite(array).all():
+        raise ValueError(f"{name} must be finite, got {int((~np.isfinite(array)).sum())} NaN/Inf values")
+    array.flags.writeable = False
+    return array
+
+
+def as_unit_vector(value: object, name: str) -> np.ndarray:
+    """Return ``value`` as a read-only unit ``(3,)`` float64 vector.
+
+    Raises
+    ------
+    ValueError
+        If the vector is not of shape (3,), not finite, or of (near) zero length.
+    """
+    vector = as_array(value, name, shape=(3,), dtype=np.float64)
+    norm = float(np.linalg.norm(vector))
+    if norm < 1e-12:
+        raise ValueError(f"{name} must be a non-zero vector, got {vector.tolist()}")
+    unit = vector / norm
+    unit.flags.writeable = False
+    return unit

@@ -1,0 +1,804 @@
+"""Reading scene folders and writing result folders (the edge of the package: files <-> objects).
+
+The layouts are the public contract of ``docs/formats.md``:
+
+* :func:`load_scene` reads ``images/``, ``sparse/`` (COLMAP text or binary, through pycolmap),
+  ``proxy.ply`` (through open3d) and ``scene.json`` into a validated
+  :class:`~mvintrinsic.scene.Scene`.
+* :func:`save_decomposition` / :func:`load_decomposition` write and read a result folder.
+  Every file is written atomically (temporary file in the same folder, then :func:`os.replace`),
+  never inside a scene folder, and a non-empty folder that mvintrinsic did not create is only
+  written into when ``overwrite=True``.
+* :func:`read_image` / :func:`write_image` read and write single images through OpenImageIO.
+
+Every malformed input raises :class:`SceneError` (a :class:`ValueError`) whose message starts with
+the offending file (and field) and says what is wrong.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import json
+import math
+import os
+import tempfile
+from collections.abc import Callable, Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._libusb import ensure_libusb
+from .camera import CAMERA_MODELS, Camera
+from .raytrace import Tracer
+from .results import Decomposition, IntrinsicLayers, Lighting, SkyParameters
+from .scene import Proxy, Scene, Sun, View, valid_pixels
+from .sun_position import sun_from_clicks, sun_from_time
+
+__all__ = [
+    "RESULT_MARKER",
+    "IMAGE_EXTENSIONS",
+    "ResultFolderError",
+    "SceneError",
+    "load_decomposition",
+    "load_scene",
+    "read_colmap",
+    "read_image",
+    "read_proxy",
+    "read_scene_json",
+    "save_decomposition",
+    "write_image",
+    "write_json",
+]
+
+#: Image file extensions load_scene accepts (case-insensitive).
+IMAGE_EXTENSIONS = (".exr", ".tif", ".tiff", ".png", ".jpg", ".jpeg")
+#: File that marks a folder as created by :func:`save_decomposition`.
+RESULT_MARKER = ".mvintrinsic-result"
+#: Sun keys of scene.json; exactly one must be present.
+SUN_FORMS = ("sun_direction", "sun_clicks", "sun_time")
+
+
+class SceneError(ValueError):
+    """A scene folder or one of its files is missing or malformed.
+
+    Attributes
+    ----------
+    path : pathlib.Path
+        The offending file or folder.
+    """
+
+    def __init__(self, path: os.PathLike | str, message: str) -> None:
+        self.path = Path(path)
+        super().__init__(f"{self.path}: {message}")
+
+
+class ResultFolderError(ValueError):
+    """A result folder cannot be written where asked (inside a scene, or a foreign folder)."""
+
+
+# ---------------------------------------------------------------------------------------------
+# images
+# ---------------------------------------------------------------------------------------------
+def _srgb_lut(levels: int) -> np.ndarray:
+    import colour
+
+    code = np.arange(levels, dtype=np.float64) / (levels - 1)
+    return np.asarray(colour.cctf_decoding(code, function="sRGB"), dtype=np.float32)
+
+
+def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:
+    """Read an image file as linear RGB.
+
+    Parameters
+    ----------
+    path : path-like
+        EXR, TIFF, PNG or JPEG file.
+
+    Returns
+    -------
+    image : (H, W, 3) float32
+        Linear RGB. 8-bit files are sRGB-decoded (colour-science's sRGB EOTF); 16-bit integer and
+        float files are taken as linear (16-bit scaled to [0, 1]). Grey images are replicated to
+        three channels, an alpha channel is dropped.
+    saturation : float or None
+        The linear value at which an integer file clips (1.0), or None for float files.
+
+    Raises
+    ------
+    SceneError
+        If the file is missing, unreadable, truncated or has an unsupported channel count.
+    """
+    import OpenImageIO as oiio
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(path, "image file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise SceneError(path, f"unreadable image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        channels = spec.nchannels
+        if channels not in (1, 2, 3, 4):
+            raise SceneError(path, f"unsupported image with {channels} channels (need 1-4)")
+        base = spec.format.basetype
+        integer = base in (oiio.UINT8, oiio.UINT16)
+        fmt = {oiio.UINT8: "uint8", oiio.UINT16: "uint16"}.get(base, "float")
+        data = inp.read_image(0, 0, 0, channels, fmt)
+        if data is None or inp.has_error:
+            raise SceneError(path, f"unreadable or truncated image ({inp.geterror().strip()})")
+    finally:
+        inp.close()
+    data = np.asarray(data).reshape(spec.height, spec.width, channels)
+    if fmt == "uint8":
+        data = _srgb_lut(256)[data]
+    elif fmt == "uint16":
+        data = data.astype(np.float32) / np.float32(65535.0)
+    data = data.astype(np.float32, copy=False)
+    if channels <= 2:
+        data = np.repeat(data[..., :1], 3, axis=2)
+    else:
+        data = data[..., :3]
+    return np.ascontiguousarray(data), (1.0 if integer else None)
+
+
+def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Write through ``write(tmp)`` to a temporary sibling of ``path``, then rename it over ``path``.
+
+    The temporary file keeps ``path``'s extension (OpenImageIO chooses the format from it) and is
+    removed when anything, including KeyboardInterrupt, interrupts the write.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_image(path: os.PathLike | str, image: np.ndarray, *, dtype: str = "float") -> Path:
+    """Write an image atomically with OpenImageIO (format from the extension).
+
+    Parameters
+    ----------
+    path : path-like
+        Destination; ``.exr`` for linear float data, ``.png`` for 8-bit codes.
+    image : (H, W) or (H, W, C) array
+        Pixel values, written as they are (no colour encoding).
+    dtype : {"float", "half", "uint8", "uint16"}, optional
+        Storage type in the file.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    import OpenImageIO as oiio
+
+    if dtype not in ("float", "half", "uint8", "uint16"):
+        raise ValueError(f"dtype must be one of 'float', 'half', 'uint8', 'uint16', got {dtype!r}")
+    array = np.asarray(image)
+    if array.ndim == 2:
+        array = array[..., None]
+    if array.ndim != 3 or array.shape[2] not in (1, 3, 4):
+        raise ValueError(f"image must have shape (H, W), (H, W, 1), (H, W, 3) or (H, W, 4), got shape {np.shape(image)}")
+    np_dtype = {"float": np.float32, "half": np.float16, "uint8": np.uint8, "uint16": np.uint16}[dtype]
+    array = np.ascontiguousarray(array.astype(np_dtype, copy=False))
+    path = Path(path)
+
+    def write(tmp: Path) -> None:
+        out = oiio.ImageOutput.create(str(tmp))
+        if out is None:
+            raise OSError(f"{path}: cannot create an image writer ({oiio.geterror().strip()})")
+        spec = oiio.ImageSpec(array.shape[1], array.shape[0], array.shape[2], dtype)
+        if path.suffix.lower() == ".exr":
+            spec.attribute("compression", "zip")
+        ok = out.open(str(tmp), spec) and out.write_image(array)
+        ok = out.close() and ok
+        if not ok:
+            raise OSError(f"{path}: writing failed ({out.geterror().strip()})")
+
+    _atomic_write(path, write)
+    return path
+
+
+def write_json(path: os.PathLike | str, data: Any) -> Path:
+    """Write ``data`` as indented JSON, atomically."""
+    path = Path(path)
+    text = json.dumps(data, indent=1, allow_nan=False) + "\n"
+    _atomic_write(path, lambda tmp: tmp.write_text(text))
+    return path
+
+
+# ---------------------------------------------------------------------------------------------
+# COLMAP model
+# ---------------------------------------------------------------------------------------------
+def read_colmap(sparse: os.PathLike | str) -> dict[str, Camera]:
+    """Read a COLMAP model (text or binary) with pycolmap.
+
+    Parameters
+    ----------
+    sparse : path-like
+        Folder holding ``cameras``, ``images`` and ``points3D`` as ``.txt`` or ``.bin``.
+        A missing points3D file is treated as empty.
+
+    Returns
+    -------
+    dict of str to Camera
+        Posed camera of every registered image, keyed by the image name in the model.
+
+    Raises
+    ------
+    SceneError
+        If the folder or a model file is missing or malformed, or a camera model is not one of
+        :data:`~mvintrinsic.camera.CAMERA_MODELS`.
+    """
+    import pycolmap
+
+    sparse = Path(sparse)
+    if not sparse.is_dir():
+        raise SceneError(sparse, "COLMAP model folder not found")
+    for ext in (".bin", ".txt"):
+        if (sparse / f"cameras{ext}").is_file() and (sparse / f"images{ext}").is_file():
+            break
+    else:
+        raise SceneError(sparse, "no COLMAP model: need cameras.txt + images.txt or cameras.bin + images.bin")
+    cameras_file = sparse / f"cameras{ext}"
+    if ext == ".txt":
+        _check_camera_models_txt(cameras_file)
+    with contextlib.ExitStack() as stack:
+        folder = sparse
+        if not (sparse / f"points3D{ext}").is_file():
+            folder = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="mvintrinsic-sparse-")))
+            for name in ("cameras", "images"):
+                (folder / f"{name}{ext}").symlink_to((sparse / f"{name}{ext}").resolve())
+            if ext == ".txt":
+                (folder / "points3D.txt").write_text("")
+            else:
+                (folder / "points3D.bin").write_bytes(np.uint64(0).tobytes())
+        try:
+            reconstruction = pycolmap.Reconstruction(str(folder))
+        except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on bad files
+            raise SceneError(sparse, f"malformed COLMAP model ({str(exc).strip().splitlines()[-1][:200]})") from exc
+    cameras: dict[str, Camera] = {}
+    for image in reconstruction.images.values():
+        cam = reconstruction.cameras[image.camera_id]
+        model = cam.model.name
+        if model not in CAMERA_MODELS:
+            raise SceneError(
+                cameras_file,
+                f"camera {image.camera_id}: unknown or unsupported camera model {model!r} "
+                f"(supported: {', '.join(CAMERA_MODELS)})",
+            )
+        pose = image.cam_from_world() if callable(image.cam_from_world) else image.cam_from_world
+        try:
+            cameras[image.name] = Camera(
+                model, cam.width, cam.height, np.array(cam.params), pose.rotation.matrix(), np.array(pose.translation)
+            )
+        except ValueError as exc:
+            raise SceneError(sparse, f"image {image.name!r}: invalid camera ({exc})") from exc
+    if not cameras:
+        raise SceneError(sparse / f"images{ext}", "the COLMAP model has no registered images")
+    return cameras
+
+
+def _check_camera_models_txt(path: Path) -> None:
+    """Name the unknown model of a cameras.txt before pycolmap rejects it with a vaguer message."""
+    import pycolmap
+
+    known = {m for m in dir(pycolmap.CameraModelId) if m.isupper()}
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        if len(fields) < 4:
+            raise SceneError(path, f"line {number}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', got {line!r}")
+        if fields[1] not in known or fields[1] not in CAMERA_MODELS:
+            raise SceneError(
+                path,
+                f"line {number}: unknown or unsupported camera model {fields[1]!r} (supported: {', '.join(CAMERA_MODELS)})",
+            )
+
+
+# ---------------------------------------------------------------------------------------------
+# proxy
+# ---------------------------------------------------------------------------------------------
+def read_proxy(path: os.PathLike | str, *, camera_centers: np.ndarray | None = None, knn: int = 30) -> Proxy:
+    """Read the reconstructed geometry with open3d.
+
+    Parameters
+    ----------
+    path : path-like
+        A PLY (or any format open3d reads) triangle mesh or point cloud.
+    camera_centers : (C, 3) array_like, optional
+        World-frame camera centres. Estimated point-cloud normals are flipped toward the nearest
+        centre (they face the side that was photographed).
+    knn : int, optional
+        Neighbours used to estimate point-cloud normals when the file has none.
+
+    Returns
+    -------
+    Proxy
+        Meshes keep their triangles (unreferenced vertices dropped); vertex normals come from the
+        file or, when absent, from the triangles. 8-bit vertex colours are sRGB-decoded to linear.
+
+    Raises
+    ------
+    SceneError
+        If the file is missing, unreadable, empty or degenerate.
+    """
+    ensure_libusb()
+    import open3d as o3d
+
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(path, "proxy file not found")
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
+        cloud = None
+        if len(mesh.triangles) == 0:
+            cloud = o3d.io.read_point_cloud(str(path))
+    if cloud is None:
+        mesh.remove_unreferenced_vertices()
+        if not mesh.has_vertex_normals():
+            mesh.compute_vertex_normals()
+        vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        normals = np.asarray(mesh.vertex_normals)
+        colors = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
+    else:
+        triangles = None
+        vertices = np.asarray(cloud.points)
+        if len(vertices) == 0:
+            raise SceneError(path, "the proxy is empty (no vertices could be read)")
+        if not cloud.has_normals() and len(vertices) >= 3:
+            cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(knn, len(vertices))))
+            normals = np.asarray(cloud.normals).copy()
+            if camera_centers is not None:
+                normals = _orient_toward(vertices, normals, np.asarray(camera_centers, dtype=np.float64))
+        else:
+            normals = np.asarray(cloud.normals)
+        colors = np.asarray(cloud.colors) if cloud.has_colors() else None
+    if len(vertices) == 0:
+        raise SceneError(path, "the proxy is empty (no vertices could be read)")
+    normals = _repair_normals(vertices, normals, path)
+    if colors is not None and len(colors):
+        colors = _srgb_lut(256)[np.clip(np.round(colors * 255), 0, 255).astype(np.uint8)]
+    else:
+        colors = None
+    try:
+        return Proxy(vertices, normals, triangles, colors)
+    except ValueError as exc:
+        raise SceneError(path, str(exc)) from exc
+
+
+def _repair_normals(vertices: np.ndarray, normals: np.ndarray, path: Path) -> np.ndarray:
+    """Unit normals; a zero or non-finite one (a vertex of degenerate triangles only, a bad
+    file entry) takes the normal of the nearest vertex that has a valid one."""
+    from scipy.spatial import cKDTree
+
+    if len(normals) != len(vertices):
+        raise SceneError(path, f"{len(normals)} normals for {len(vertices)} vertices")
+    normals = np.array(normals, dtype=np.float64)
+    with np.errstate(invalid="ignore"):
+        lengths = np.linalg.norm(normals, axis=1)
+        good = np.isfinite(lengths) & (lengths > 1e-12)
+    if not good.any():
+        raise SceneError(path, "the proxy is degenerate: no vertex has a valid normal")
+    normals[good] /= lengths[good, None]
+    if not good.all():
+        _, nearest = cKDTree(vertices[good]).query(vertices[~good])
+        normals[~good] = normals[good][nearest]
+    return normals
+
+
+def _orient_toward(points: np.ndarray, normals: np.ndarray, centers: np.ndarray) -> np.ndarray:
+    from scipy.spatial import cKDTree
+
+    _, nearest = cKDTree(centers).query(points)
+    flip = np.einsum("ij,ij->i", normals, centers[nearest] - points) < 0
+    normals[flip] *= -1
+    return normals
+
+
+def _check_proxy_visible(proxy: Proxy, cameras: Iterable[Camera], path: Path) -> None:
+    """Raise unless some proxy point lies in front of some camera and inside its image."""
+    step = max(1, len(proxy.vertices) // 200_000)
+    points = proxy.vertices[::step]
+    for camera in cameras:
+        pixels, depth = camera.project(points)
+        if np.any((depth > 0) & camera.in_image(pixels)):
+            return
+    raise SceneError(path, "the proxy lies in front of no camera: no vertex projects into any image (wrong frame?)")
+
+
+# ---------------------------------------------------------------------------------------------
+# scene.json
+# ---------------------------------------------------------------------------------------------
+def _vector(value: Any, path: Path, field: str) -> np.ndarray:
+    try:
+        vector = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SceneError(path, f"{field} must be a list of 3 numbers, got {value!r}") from None
+    if vector.shape != (3,):
+        raise SceneError(path, f"{field} must be a list of 3 numbers, got {value!r}")
+    if not np.isfinite(vector).all():
+        raise SceneError(path, f"{field} must be finite, got {value!r}")
+    if np.linalg.norm(vector) < 1e-12:
+        raise SceneError(path, f"{field} must be a non-zero vector, got {value!r}")
+    return vector / np.linalg.norm(vector)
+
+
+def _pixel(value: Any, path: Path, field: str) -> np.ndarray:
+    try:
+        pixel = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        pixel = None
+    if pixel is None or pixel.shape != (2,) or not np.isfinite(pixel).all():
+        raise SceneError(path, f"{field} must be a pixel [column, row], got {value!r}")
+    return pixel
+
+
+def read_scene_json(path: os.PathLike | str) -> dict[str, Any]:
+    """Read and validate ``scene.json`` (frame and sun, see ``docs/formats.md``).
+
+    Returns
+    -------
+    dict
+        ``{"up": (3,) unit float64, "sun_form": name, name: validated value}`` where ``name`` is the
+        single sun form given (``sun_direction`` as a unit vector, ``sun_clicks`` with float pixels,
+        ``sun_time`` with a timezone-aware :class:`datetime.datetime` under ``"datetime"``).
+
+    Raises
+    ------
+    SceneError
+        Naming the field: unreadable JSON, zero or non-finite vectors, no sun form or several,
+        missing or malformed sub-fields.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise SceneError(path, "scene.json not found")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise SceneError(path, f"not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise SceneError(path, f"must hold a JSON object, got {type(data).__name__}")
+    out: dict[str, Any] = {"up": _vector(data.get("up", [0.0, 0.0, 1.0]), path, "up")}
+    forms = [key for key in SUN_FORMS if key in data]
+    if len(forms) != 1:
+        found = f"found {forms}" if forms else "found none"
+        raise SceneError(path, f"give the sun in exactly one way ({', '.join(SUN_FORMS)}); {found}")
+    form = forms[0]
+    out["sun_form"] = form
+    value = data[form]
+    if form == "sun_direction":
+        out[form] = _vector(value, path, "sun_direction")
+    elif form == "sun_clicks":
+        if not isinstance(value, dict):
+            raise SceneError(path, f"sun_clicks must be an object with view, shadow_px, caster_px, got {value!r}")
+        for key in ("view", "shadow_px", "caster_px"):
+            if key not in value:
+                raise SceneError(path, f"sun_clicks.{key} is missing")
+        if not isinstance(value["view"], str):
+            raise SceneError(path, f"sun_clicks.view must be a view stem (string), got {value['view']!r}")
+        out[form] = {
+            "view": value["view"],
+            "shadow_px": _pixel(value["shadow_px"], path, "sun_clicks.shadow_px"),
+            "caster_px": _pixel(value["caster_px"], path, "sun_clicks.caster_px"),
+        }
+    else:
+        if not isinstance(value, dict):
+            raise SceneError(path, f"sun_time must be an object with datetime, latitude, longitude, north, got {value!r}")
+        for key in ("datetime", "latitude", "longitude", "north"):
+            if key not in value:
+                raise SceneError(path, f"sun_time.{key} is missing")
+        try:
+            when = _dt.datetime.fromisoformat(str(value["datetime"]))
+        except ValueError:
+            raise SceneError(path, f"sun_time.datetime must be ISO 8601, got {value['datetime']!r}") from None
+        if when.tzinfo is None:
+            raise SceneError(path, f"sun_time.datetime needs a UTC offset (e.g. +02:00), got {value['datetime']!r}")
+        numbers = {}
+        for key, bound in (("latitude", 90.0), ("longitude", 180.0), ("altitude", math.inf)):
+            raw = value.get(key, 0.0)
+            if isinstance(raw, bool) or not isinstance(raw, (int, float)) or not math.isfinite(raw) or abs(raw) > bound:
+                raise SceneError(path, f"sun_time.{key} must be a number in [-{bound}, {bound}], got {raw!r}")
+            numbers[key] = float(raw)
+        out[form] = {"datetime": when, **numbers, "north": _vector(value["north"], path, "sun_time.north")}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the scene
+# ---------------------------------------------------------------------------------------------
+def _resize(image: np.ndarray, mask: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Area-average ``image``; a pixel of the result is valid only if all its sources were."""
+    import cv2
+
+    clean = np.where(mask[..., None], image, 0.0).astype(np.float32)
+    small = cv2.resize(clean, (width, height), interpolation=cv2.INTER_AREA)
+    coverage = cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
+    return small, coverage > 1.0 - 1e-4
+
+
+def load_scene(
+    path: os.PathLike | str,
+    *,
+    max_size: int | None = None,
+    views: Sequence[str] | None = None,
+    on_invalid: str = "raise",
+    progress: bool = False,
+) -> Scene:
+    """Load a scene folder (``docs/formats.md``).
+
+    Parameters
+    ----------
+    path : path-like
+        Scene folder with ``images/``, ``sparse/``, ``proxy.ply`` and ``scene.json``.
+    max_size : int, optional
+        Downscale images (area averaging) so that their longer side is at most ``max_size`` pixels;
+        cameras are scaled to match (:meth:`Camera.scaled`). Sun clicks refer to full-size pixels.
+    views : sequence of str, optional
+        Stems (or image names) of the views to load, in the order given. Default: all registered
+        images, sorted by name.
+    on_invalid : {"raise", "mask"}, optional
+        What to do with NaN, infinite or negative pixels: raise a :class:`SceneError` naming the
+        image, or exclude them from the view's valid mask.
+    progress : bool, optional
+        Show a progress bar over images (tqdm).
+
+    Returns
+    -------
+    Scene
+        With ``source`` set to the folder. Each view's mask excludes saturated pixels of integer
+        images (any channel at the maximum code) and, with ``on_invalid="mask"``, invalid pixels.
+
+    Raises
+    ------
+    SceneError
+        Naming the file or field: missing folder or part, image listed in the model but absent,
+        image size not matching its camera, unreadable image, invalid pixels, empty or degenerate
+        proxy, proxy in front of no camera, malformed scene.json, clicks outside the image or
+        missing the proxy, sun below the horizon, unknown camera model.
+    """
+    from tqdm.auto import tqdm
+
+    if on_invalid not in ("raise", "mask"):
+        raise ValueError(f"on_invalid must be 'raise' or 'mask', got {on_invalid!r}")
+    if max_size is not None and (isinstance(max_size, bool) or not isinstance(max_size, int) or max_size < 1):
+        raise ValueError(f"max_size must be a positive integer or None, got {max_size!r}")
+    root = Path(path)
+    if not root.is_dir():
+        raise SceneError(root, "scene folder not found")
+    for part, is_dir in (("images", True), ("sparse", True), ("proxy.ply", False), ("scene.json", False)):
+        p = root / part
+        if not (p.is_dir() if is_dir else p.is_file()):
+            raise SceneError(p, f"missing: a scene folder needs images/, sparse/, proxy.ply and scene.json")
+    settings = read_scene_json(root / "scene.json")
+    cameras = read_colmap(root / "sparse")
+    by_stem = {Path(name).with_suffix("").as_posix(): name for name in cameras}
+    if views is None:
+        names = sorted(cameras)
+    else:
+        if isinstance(views, str):
+            raise TypeError("views must be a sequence of stems, not a single string")
+        names = []
+        for wanted in views:
+            name = wanted if wanted in cameras else by_stem.get(wanted)
+            if name is None:
+                raise ValueError(f"views: no view named {wanted!r} in the model; views are {sorted(by_stem)}")
+            names.append(name)
+    proxy = read_proxy(root / "proxy.ply", camera_centers=np.stack([c.center for c in cameras.values()]))
+    _check_proxy_visible(proxy, cameras.values(), root / "proxy.ply")
+
+    loaded = []
+    for name in tqdm(names, desc="images", unit="img", disable=not progress):
+        file = root / "images" / name
+        if not file.is_file():
+            raise SceneError(file, f"image {name!r} is listed in the COLMAP model but absent from images/")
+        if file.suffix.lower() not in IMAGE_EXTENSIONS:
+            raise SceneError(file, f"unsupported image type {file.suffix!r} (supported: {', '.join(IMAGE_EXTENSIONS)})")
+        camera = cameras[name]
+        image, saturation = read_image(file)
+        h, w = image.shape[:2]
+        if (w, h) != (camera.width, camera.height):
+            raise SceneError(file, f"image is {w}x{h} pixels but its COLMAP camera is {camera.width}x{camera.height}")
+        with np.errstate(invalid="ignore"):
+            finite = np.isfinite(image).all(axis=2)
+            negative = finite & (image < 0).any(axis=2)
+        if on_invalid == "raise" and (not finite.all() or negative.any()):
+            raise SceneError(
+                file,
+                f"{int((~finite).sum())} pixels are NaN or infinite and {int(negative.sum())} are negative "
+                "(pass on_invalid='mask' to exclude them instead)",
+            )
+        mask = valid_pixels(image, saturation=saturation)
+        if max_size is not None and max(w, h) > max_size:
+            scale = max_size / max(w, h)
+            nw, nh = max(1, round(w * scale)), max(1, round(h * scale))
+            image, mask = _resize(image, mask, nw, nh)
+            camera = camera.scaled(nw, nh)
+        loaded.append(View(Path(name).with_suffix("").as_posix(), image, camera, mask))
+
+    sun = _scene_sun(settings, root, cameras, by_stem, proxy)
+    try:
+        return Scene(tuple(loaded), proxy, sun, up=settings["up"], source=root.resolve())
+    except ValueError as exc:
+        raise SceneError(root / "scene.json", str(exc)) from exc
+
+
+def _scene_sun(settings: dict, root: Path, cameras: dict[str, Camera], by_stem: dict[str, str], proxy: Proxy) -> Sun:
+    form, value, file = settings["sun_form"], settings[settings["sun_form"]], root / "scene.json"
+    if form == "sun_direction":
+        return Sun(value)
+    if form == "sun_time":
+        return sun_from_time(
+            value["datetime"], value["latitude"], value["longitude"], north=value["north"], up=settings["up"],
+            altitude=value["altitude"],
+        )
+    name = value["view"] if value["view"] in cameras else by_stem.get(value["view"])
+    if name is None:
+        raise SceneError(file, f"sun_clicks.view: no view named {value['view']!r}; views are {sorted(by_stem)}")
+    try:
+        return sun_from_clicks(cameras[name], value["shadow_px"], value["caster_px"], Tracer(proxy))
+    except ValueError as exc:
+        raise SceneError(file, f"sun_clicks: {exc}") from exc
+
+
+# ---------------------------------------------------------------------------------------------
+# result folder
+# ---------------------------------------------------------------------------------------------
+def _is_scene_folder(folder: Path) -> bool:
+    return (folder / "scene.json").is_file() and (folder / "sparse").is_dir()
+
+
+def _prepare_result_folder(folder: Path, *, overwrite: bool, scene: Scene | os.PathLike | str | None) -> Path:
+    folder = Path(folder).resolve()
+    scene_dir = scene.source if isinstance(scene, Scene) else (None if scene is None else Path(scene))
+    if scene_dir is not None:
+        scene_dir = Path(scene_dir).resolve()
+        if folder == scene_dir or scene_dir in folder.parents:
+            raise ResultFolderError(f"{folder}: refusing to write a result inside the scene folder {scene_dir}")
+    for candidate in (folder, *folder.parents):
+        if _is_scene_folder(candidate):
+            raise ResultFolderError(f"{folder}: refusing to write a result inside the scene folder {candidate}")
+    if folder.exists():
+        if not folder.is_dir():
+            raise ResultFolderError(f"{folder}: exists and is not a folder")
+        if any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file() and not overwrite:
+            raise ResultFolderError(
+                f"{folder}: is not empty and was not written by mvintrinsic; pass overwrite=True to write into it"
+            )
+    folder.mkdir(parents=True, exist_ok=True)
+    if not (folder / RESULT_MARKER).is_file():
+        (folder / RESULT_MARKER).write_text("written by mvintrinsic\n")
+    return folder
+
+
+def save_decomposition(
+    result: Decomposition,
+    folder: os.PathLike | str,
+    *,
+    overwrite: bool = False,
+    scene: Scene | os.PathLike | str | None = None,
+) -> Path:
+    """Write a decomposition as a result folder (``docs/formats.md``).
+
+    Parameters
+    ----------
+    result : Decomposition
+        What to write.
+    folder : path-like
+        Destination folder, created if needed.
+    overwrite : bool, optional
+        Allow writing into an existing non-empty folder that mvintrinsic did not create.
+        Folders it created (they hold :data:`RESULT_MARKER`) are updated in place.
+    scene : Scene or path-like, optional
+        The input scene (or its folder): writing inside it is refused. Folders that look like a
+        scene folder (``scene.json`` + ``sparse/``), or lie inside one, are refused in any case.
+
+    Returns
+    -------
+    pathlib.Path
+        The result folder.
+
+    Notes
+    -----
+    Each file is written atomically; ``lighting.json`` is written last, so its presence marks a
+    complete result. EXR files are 32-bit float (lossless round trip).
+    """
+    if not isinstance(result, Decomposition):
+        raise TypeError(f"result must be a Decomposition, got {type(result).__name__}")
+    folder = _prepare_result_folder(Path(folder), overwrite=overwrite, scene=scene)
+    if result.lighting.envmap is not None:
+        write_image(folder / "envmap.exr", result.lighting.envmap)
+    for stem, layers in result.layers.items():
+        out = folder / "views" / stem
+        write_image(out / "reflectance.exr", layers.reflectance)
+        write_image(out / "shading.exr", layers.shading)
+        write_image(out / "sun_shading.exr", layers.sun_shading)
+        write_image(out / "sky_shading.exr", layers.sky_shading)
+        write_image(out / "indirect_shading.exr", layers.indirect_shading)
+        write_image(out / "visibility.exr", layers.visibility)
+        write_image(out / "shadow_labels.png", layers.shadow_labels, dtype="uint8")
+    lighting = result.lighting.to_dict()
+    lighting.update(
+        views=list(result.stems), timings=dict(result.timings), version=result.version, config=dict(result.config)
+    )
+    write_json(folder / "lighting.json", lighting)
+    return folder
+
+
+def _read_raw(path: Path, channels: int) -> np.ndarray:
+    import OpenImageIO as oiio
+
+    if not path.is_file():
+        raise SceneError(path, "result file not found")
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise SceneError(path, f"unreadable image ({oiio.geterror().strip()})")
+    try:
+        spec = inp.spec()
+        fmt = "uint8" if spec.format.basetype == oiio.UINT8 else "float"
+        data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        if data is None or inp.has_error:
+            raise SceneError(path, f"unreadable or truncated image ({inp.geterror().strip()})")
+    finally:
+        inp.close()
+    data = np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
+    if spec.nchannels != channels:
+        raise SceneError(path, f"expected {channels} channels, found {spec.nchannels}")
+    return data[..., 0] if channels == 1 else data
+
+
+def load_decomposition(folder: os.PathLike | str) -> Decomposition:
+    """Read a result folder written by :func:`save_decomposition`.
+
+    ``shading.exr`` is not read back: it is derived from the other layers.
+
+    Raises
+    ------
+    SceneError
+        If ``lighting.json`` or a layer file is missing or malformed.
+    """
+    folder = Path(folder)
+    file = folder / "lighting.json"
+    if not file.is_file():
+        raise SceneError(file, "lighting.json not found (not a complete result folder)")
+    try:
+        data = json.loads(file.read_text())
+        sky = None if data.get("sky") is None else SkyParameters.from_dict(data["sky"])
+        envmap = _read_raw(folder / "envmap.exr", 3) if (folder / "envmap.exr").is_file() else None
+        lighting = Lighting(
+            Sun(data["sun_direction"], data.get("sun_angular_radius", Sun(data["sun_direction"]).angular_radius)),
+            data["sun_radiance"],
+            up=data["up"],
+            sky=sky,
+            horizon_plane=data.get("horizon_plane"),
+            envmap=envmap,
+        )
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, SceneError):
+            raise
+        raise SceneError(file, f"malformed lighting.json ({exc!r})") from exc
+    layers = {}
+    for stem in data.get("views", []):
+        out = folder / "views" / stem
+        layers[stem] = IntrinsicLayers(
+            stem,
+            reflectance=_read_raw(out / "reflectance.exr", 3),
+            sun_shading=_read_raw(out / "sun_shading.exr", 3),
+            sky_shading=_read_raw(out / "sky_shading.exr", 3),
+            indirect_shading=_read_raw(out / "indirect_shading.exr", 3),
+            visibility=_read_raw(out / "visibility.exr", 1),
+            shadow_labels=_read_raw(out / "shadow_labels.png", 1),
+        )
+    return Decomposition(
+        layers, lighting, timings=data.get("timings", {}), config=data.get("config", {}), version=data.get("version", "")
+    )

@@ -51,7 +51,7 @@ def as_array(
     except (TypeError, ValueError) as exc:
         raise TypeError(f"{name} must be convertible to a {np.dtype(dtype)} array, got {describe(value)}") from exc
     expected = "(" + ", ".join("N" if s is None else str(s) for s in shape) + ")"
-    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape)):
+    if array.ndim != len(shape) or any(s is not None and s != a for s, a in zip(shape, array.shape, strict=False)):
         raise ValueError(f"{name} must have shape {expected}, got shape {array.shape}")
     if finite and array.dtype.kind == "f" and not np.isfinite(array).all():
         raise ValueError(f"{name} must be finite, got {int((~np.isfinite(array)).sum())} NaN/Inf values")

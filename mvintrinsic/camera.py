@@ -157,7 +157,7 @@ class Camera:
         if not (fx > 0 and fy > 0):
             raise ValueError(f"params: focal lengths must be positive, got {params.tolist()}")
         dist = np.zeros(4)
-        values = dict(zip(CAMERA_MODELS[self.model], params))
+        values = dict(zip(CAMERA_MODELS[self.model], params, strict=True))
         if self.model == "SIMPLE_RADIAL":
             dist[0] = values["k"]
         elif self.model in ("RADIAL", "OPENCV"):

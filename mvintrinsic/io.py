@@ -579,7 +579,7 @@ def load_scene(
     for part, is_dir in (("images", True), ("sparse", True), ("proxy.ply", False), ("scene.json", False)):
         p = root / part
         if not (p.is_dir() if is_dir else p.is_file()):
-            raise SceneError(p, f"missing: a scene folder needs images/, sparse/, proxy.ply and scene.json")
+            raise SceneError(p, "missing: a scene folder needs images/, sparse/, proxy.ply and scene.json")
     settings = read_scene_json(root / "scene.json")
     cameras = read_colmap(root / "sparse")
     by_stem = {Path(name).with_suffix("").as_posix(): name for name in cameras}
@@ -648,7 +648,7 @@ def _scene_sun(settings: dict, root: Path, cameras: dict[str, Camera], by_stem: 
     try:
         return sun_from_clicks(cameras[name], value["shadow_px"], value["caster_px"], Tracer(proxy))
     except ValueError as exc:
-        raise SceneError(file, f"sun_clicks: {exc}") from exc
+        raise SceneError(file, f"sun_clicks.{exc}") from exc
 
 
 # ---------------------------------------------------------------------------------------------

@@ -19,10 +19,12 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import functools
 import json
 import math
 import os
 import tempfile
+import warnings
 from collections.abc import Callable, Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -81,11 +83,19 @@ class ResultFolderError(ValueError):
 # ---------------------------------------------------------------------------------------------
 # images
 # ---------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=2)
 def _srgb_lut(levels: int) -> np.ndarray:
-    import colour
+    """Linear value of every code of an sRGB-encoded integer image, (levels,) float32."""
+    with warnings.catch_warnings():
+        # colour-science warns on import when its optional plotting dependency (matplotlib) is
+        # absent; mvintrinsic only uses its transfer functions.
+        warnings.filterwarnings("ignore", message=".*Matplotlib.*related API features are not available")
+        import colour
 
     code = np.arange(levels, dtype=np.float64) / (levels - 1)
-    return np.asarray(colour.cctf_decoding(code, function="sRGB"), dtype=np.float32)
+    lut = np.asarray(colour.cctf_decoding(code, function="sRGB"), dtype=np.float32)
+    lut.flags.writeable = False
+    return lut
 
 
 def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:

@@ -109,6 +109,8 @@ class Tracer:
             o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
         )
         self._o3c = o3d.core
+        # Embree builds its BVH on the first query: do it now, so construction carries the cost.
+        self._scene.test_occlusions(o3d.core.Tensor(np.zeros((1, 6), dtype=np.float32)))
 
     @staticmethod
     def _surfels(proxy: Proxy, scale: float, k: int) -> tuple[np.ndarray, np.ndarray]:

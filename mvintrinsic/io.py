@@ -50,8 +50,10 @@ __all__ = [
     "read_proxy",
     "read_scene_json",
     "save_decomposition",
+    "write_colmap_text",
     "write_image",
     "write_json",
+    "write_proxy",
 ]
 
 #: Image file extensions load_scene accepts (case-insensitive).
@@ -83,15 +85,22 @@ class ResultFolderError(ValueError):
 # ---------------------------------------------------------------------------------------------
 # images
 # ---------------------------------------------------------------------------------------------
+def import_colour():
+    """Import colour-science without its warning about the optional matplotlib.
+
+    colour-science warns on import when its plotting dependency is absent; mvintrinsic only uses
+    its transfer functions.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*Matplotlib.*related API features are not available")
+        import colour
+    return colour
+
+
 @functools.lru_cache(maxsize=2)
 def _srgb_lut(levels: int) -> np.ndarray:
     """Linear value of every code of an sRGB-encoded integer image, (levels,) float32."""
-    with warnings.catch_warnings():
-        # colour-science warns on import when its optional plotting dependency (matplotlib) is
-        # absent; mvintrinsic only uses its transfer functions.
-        warnings.filterwarnings("ignore", message=".*Matplotlib.*related API features are not available")
-        import colour
-
+    colour = import_colour()
     code = np.arange(levels, dtype=np.float64) / (levels - 1)
     lut = np.asarray(colour.cctf_decoding(code, function="sRGB"), dtype=np.float32)
     lut.flags.writeable = False
@@ -224,6 +233,62 @@ def write_json(path: os.PathLike | str, data: Any) -> Path:
     text = json.dumps(data, indent=1, allow_nan=False) + "\n"
     _atomic_write(path, lambda tmp: tmp.write_text(text))
     return path
+
+
+def write_proxy(path: os.PathLike | str, proxy: Proxy) -> Path:
+    """Write a proxy as a binary PLY (mesh or point cloud, with normals), atomically."""
+    ensure_libusb()
+    import open3d as o3d
+
+    path = Path(path)
+    if proxy.is_mesh:
+        geometry = o3d.geometry.TriangleMesh(
+            o3d.utility.Vector3dVector(proxy.vertices), o3d.utility.Vector3iVector(proxy.triangles.astype(np.int32))
+        )
+        geometry.vertex_normals = o3d.utility.Vector3dVector(proxy.normals)
+        write = o3d.io.write_triangle_mesh
+    else:
+        geometry = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(proxy.vertices))
+        geometry.normals = o3d.utility.Vector3dVector(proxy.normals)
+        write = o3d.io.write_point_cloud
+
+    def writer(tmp: Path) -> None:
+        if not write(str(tmp), geometry):
+            raise OSError(f"{path}: open3d could not write the PLY file")
+
+    _atomic_write(path, writer)
+    return path
+
+
+def write_colmap_text(folder: os.PathLike | str, cameras: dict[str, Camera]) -> Path:
+    """Write a COLMAP text model (one camera per image, no 3D points), atomically per file.
+
+    Parameters
+    ----------
+    folder : path-like
+        The ``sparse/`` folder to write ``cameras.txt``, ``images.txt`` and ``points3D.txt`` into.
+    cameras : dict of str to Camera
+        Posed camera of each image, keyed by image name (e.g. ``"view_000.exr"``), in order.
+    """
+    from scipy.spatial.transform import Rotation
+
+    folder = Path(folder)
+    cam_lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
+    img_lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+    ]
+    for i, (name, cam) in enumerate(cameras.items(), start=1):
+        cam_lines.append(f"{i} {cam.model} {cam.width} {cam.height} " + " ".join(f"{p:.17g}" for p in cam.params))
+        x, y, z, w = Rotation.from_matrix(cam.rotation).as_quat()
+        qt = (w, x, y, z, *cam.translation)
+        img_lines += [f"{i} " + " ".join(f"{v:.17g}" for v in qt) + f" {i} {name}", ""]
+    write_text = {"cameras.txt": cam_lines, "images.txt": img_lines, "points3D.txt": ["# 3D point list (empty)"]}
+    for file, lines in write_text.items():
+        text = "\n".join(lines) + "\n"
+        _atomic_write(folder / file, lambda tmp, text=text: tmp.write_text(text))
+    return folder
 
 
 # ---------------------------------------------------------------------------------------------

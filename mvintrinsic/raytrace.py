@@ -46,6 +46,9 @@ class RayHits:
     vertex : (N,) int64
         Index of the proxy vertex nearest the hit (the surfel's point for point clouds); -1 where
         ``hit`` is False.
+    triangle : (N,) int64
+        Index of the hit triangle of a mesh proxy (of the surfel's point for point clouds); -1
+        where ``hit`` is False.
     """
 
     hit: np.ndarray
@@ -53,6 +56,7 @@ class RayHits:
     points: np.ndarray
     normals: np.ndarray
     vertex: np.ndarray
+    triangle: np.ndarray
 
 
 def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -169,6 +173,7 @@ class Tracer:
         t = np.full(n, np.inf)
         normals = np.full((n, 3), np.nan)
         vertex = np.full(n, -1, dtype=np.int64)
+        triangle = np.full(n, -1, dtype=np.int64)
         for start in range(0, n, batch):
             sl = slice(start, min(start + batch, n))
             o = origins[sl] + t_min * directions[sl]
@@ -181,8 +186,9 @@ class Tracer:
             idx = np.flatnonzero(ok) + start
             local = idx - start
             if self._triangle_vertices is None:
-                vertex[idx] = prim[local] // 2
+                vertex[idx] = triangle[idx] = prim[local] // 2
             else:
+                triangle[idx] = prim[local]
                 uv = answer["primitive_uvs"].numpy().astype(np.float64)[local]
                 bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
                 vertex[idx] = self._triangle_vertices[prim[local], np.argmax(bary, axis=1)]
@@ -193,7 +199,7 @@ class Tracer:
             normals[idx] = nrm
         hit = np.isfinite(t)
         points = np.where(hit[:, None], origins + np.where(hit, t, 0.0)[:, None] * directions, np.nan)
-        return RayHits(hit=hit, t=t, points=points, normals=normals, vertex=vertex)
+        return RayHits(hit=hit, t=t, points=points, normals=normals, vertex=vertex, triangle=triangle)
 
     def occluded(
         self,

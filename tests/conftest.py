@@ -25,14 +25,6 @@ def look_at(center: np.ndarray, target: np.ndarray, up=(0.0, 0.0, 1.0)) -> tuple
     return rotation, -rotation @ center
 
 
-def rotation_to_quaternion(r: np.ndarray) -> np.ndarray:
-    """(QW, QX, QY, QZ) of a rotation matrix (COLMAP order)."""
-    from scipy.spatial.transform import Rotation
-
-    x, y, z, w = Rotation.from_matrix(r).as_quat()
-    return np.array([w, x, y, z])
-
-
 def ground_and_box_mesh():
     """A 10 m ground square (subdivided) and a 2 m box standing on it: (vertices, triangles)."""
     import open3d as o3d
@@ -42,20 +34,6 @@ def ground_and_box_mesh():
     mesh = (ground + box).subdivide_midpoint(2)
     mesh.compute_vertex_normals()
     return mesh
-
-
-def write_colmap_text(folder: Path, cameras: list[tuple[str, str, int, int, list[float], np.ndarray, np.ndarray]]):
-    """Write cameras.txt / images.txt / points3D.txt, one COLMAP camera per image."""
-    folder.mkdir(parents=True, exist_ok=True)
-    cam_lines, img_lines = [], []
-    for i, (name, model, w, h, params, rotation, translation) in enumerate(cameras, start=1):
-        cam_lines.append(f"{i} {model} {w} {h} " + " ".join(f"{p:.12g}" for p in params))
-        q = rotation_to_quaternion(rotation)
-        img_lines.append(f"{i} " + " ".join(f"{v:.15g}" for v in (*q, *translation)) + f" {i} {name}")
-        img_lines.append("")
-    (folder / "cameras.txt").write_text("# Camera list\n" + "\n".join(cam_lines) + "\n")
-    (folder / "images.txt").write_text("# Image list\n" + "\n".join(img_lines) + "\n")
-    (folder / "points3D.txt").write_text("# 3D point list\n")
 
 
 def make_scene(
@@ -71,7 +49,8 @@ def make_scene(
     """Write a complete, valid scene folder under ``root`` and return its path."""
     import open3d as o3d
 
-    from mvintrinsic.io import write_image
+    from mvintrinsic.camera import Camera
+    from mvintrinsic.io import write_colmap_text, write_image
 
     rng = np.random.default_rng(seed)
     root.mkdir(parents=True, exist_ok=True)
@@ -84,13 +63,13 @@ def make_scene(
         "RADIAL": [f, w / 2, h / 2, 0.01, -0.002],
         "OPENCV": [f, f * 1.01, w / 2, h / 2, 0.01, -0.002, 0.001, -0.001],
     }[model]
-    cameras = []
+    cameras = {}
     for i in range(n_views):
         angle = -np.pi / 2 + 0.25 * (i - (n_views - 1) / 2)
         center = np.array([8.0 * np.cos(angle), 8.0 * np.sin(angle), 2.5])
         rotation, translation = look_at(center, np.array([0.0, 0.0, 0.5]))
         name = f"view_{i:03d}{ext}"
-        cameras.append((name, model, w, h, params, rotation, translation))
+        cameras[name] = Camera(model, w, h, params, rotation, translation)
         image = rng.uniform(0.05, 0.9, size=(h, w, 3)).astype(np.float32)
         if ext == ".exr":
             write_image(root / "images" / name, image)

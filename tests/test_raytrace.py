@@ -31,7 +31,16 @@ def test_hits_on_a_box_are_exact():
     np.testing.assert_allclose(hits.t[:2], [8.0, 4.0], atol=HIT_TOL)
     np.testing.assert_allclose(hits.points[:2], [[0.3, -0.2, 2.0], [1.0, 0.5, 1.0]], atol=HIT_TOL)
     np.testing.assert_allclose(hits.normals[:2], [[0, 0, 1], [1, 0, 0]], atol=1e-6)
-    assert np.isinf(hits.t[2]) and np.isnan(hits.points[2]).all() and hits.vertex[2] == -1
+    assert np.isinf(hits.t[2]) and np.isnan(hits.points[2]).all() and hits.vertex[2] == hits.triangle[2] == -1
+    # The reported triangle contains the hit point and the reported vertex is one of its corners.
+    proxy = tracer.proxy
+    for i in range(2):
+        corners = proxy.vertices[proxy.triangles[hits.triangle[i]]]
+        assert hits.vertex[i] in proxy.triangles[hits.triangle[i]]
+        a, b, c = corners
+        area = np.linalg.norm(np.cross(b - a, c - a))
+        sub = sum(np.linalg.norm(np.cross(q - hits.points[i], r - hits.points[i])) for q, r in ((a, b), (b, c), (c, a)))
+        assert sub == pytest.approx(area, rel=1e-5)
     # The reported vertex is the nearest corner of the hit triangle.
     v = tracer.proxy.vertices[hits.vertex[:2]]
     dist = np.linalg.norm(v - hits.points[:2], axis=1)

@@ -243,13 +243,14 @@ def write_proxy(path: os.PathLike | str, proxy: Proxy) -> Path:
     path = Path(path)
     if proxy.is_mesh:
         geometry = o3d.geometry.TriangleMesh(
-            o3d.utility.Vector3dVector(proxy.vertices), o3d.utility.Vector3iVector(proxy.triangles.astype(np.int32))
+            o3d.utility.Vector3dVector(np.array(proxy.vertices)),
+            o3d.utility.Vector3iVector(proxy.triangles.astype(np.int32)),
         )
-        geometry.vertex_normals = o3d.utility.Vector3dVector(proxy.normals)
+        geometry.vertex_normals = o3d.utility.Vector3dVector(np.array(proxy.normals))
         write = o3d.io.write_triangle_mesh
     else:
-        geometry = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(proxy.vertices))
-        geometry.normals = o3d.utility.Vector3dVector(proxy.normals)
+        geometry = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.array(proxy.vertices)))
+        geometry.normals = o3d.utility.Vector3dVector(np.array(proxy.normals))
         write = o3d.io.write_point_cloud
 
     def writer(tmp: Path) -> None:

@@ -112,9 +112,14 @@ class Renders:
 
 
 def write_ply_with_uvs(path: Path, vertices: np.ndarray, triangles: np.ndarray, uvs: np.ndarray) -> None:
-    """Binary little-endian PLY with ``x y z u v`` per vertex (Mitsuba's ``ply`` loader reads UVs)."""
+    """Binary little-endian PLY with ``x y z u v`` per vertex (Mitsuba's ``ply`` loader reads UVs).
+
+    ``v`` is written as ``1 - v``: :class:`~mvintrinsic.synth.types.Material` textures store
+    row 0 at v = 1 (as image files do) while Mitsuba's bitmap puts v = 0 at row 0.
+    """
     vertices = np.ascontiguousarray(vertices, dtype=np.float32)
-    uvs = np.ascontiguousarray(uvs, dtype=np.float32)
+    uvs = np.array(uvs, dtype=np.float32)
+    uvs[:, 1] = 1.0 - uvs[:, 1]
     header = (
         "ply\nformat binary_little_endian 1.0\n"
         f"element vertex {len(vertices)}\n"

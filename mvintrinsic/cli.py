@@ -2,10 +2,15 @@
 
 Commands
 --------
+demo
+    Load the embedded demo scene (rendered by ``synth``, shipped with the package), print its
+    summary and write previews (tonemapped PNGs of the images and ground-truth layers).
 info SCENE
     Load a scene folder (``docs/formats.md``), validate it and print a summary: views, cameras,
     image statistics, proxy, sun, and which ground-truth layers are present. ``--json`` prints
     the same summary as JSON.
+synth RECIPE OUT
+    Render a synthetic scene folder with ground truth (needs Mitsuba 3: the ``render`` extra).
 
 Errors in the input are reported on one line naming the file or field, with exit status 2.
 """
@@ -113,6 +118,85 @@ def _cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def demo_scene_path() -> Path:
+    """Folder of the embedded demo scene (package data ``mvintrinsic/data/demo``)."""
+    from importlib.resources import files
+
+    return Path(str(files("mvintrinsic") / "data" / "demo"))
+
+
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from .preview import write_scene_previews
+
+    folder = demo_scene_path()
+    scene = load_scene(folder)
+    print(_format_summary(scene_summary(scene)))
+    out = args.out.resolve()
+    if folder.resolve() in (out, *out.parents):
+        raise ValueError(f"--out {out}: refusing to write previews inside the demo scene")
+    written = write_scene_previews(folder, out)
+    layers = sorted({p.parent.name for p in written})
+    print(f"previews     {len(written)} PNGs in {out}/ ({', '.join(layers)})")
+    return 0
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--size must look like 320x240, got {text!r}") from None
+    return w, h
+
+
+def _parse_sun(text: str) -> tuple[float, float]:
+    try:
+        az, el = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--sun must be AZIMUTH,ELEVATION in degrees, got {text!r}") from None
+    return az, el
+
+
+def _parse_knob(text: str, current: object) -> object:
+    """A --degrade value typed like the knob's default (None for 'none')."""
+    if text.lower() == "none":
+        return None
+    if isinstance(current, bool):
+        return text.lower() in ("1", "true", "yes")
+    if isinstance(current, int):
+        return int(text)
+    return float(text)
+
+
+def _cmd_synth(args: argparse.Namespace) -> int:
+    from dataclasses import fields
+
+    from .synth.dataset import SynthConfig, synthesize, with_overrides
+
+    config = SynthConfig(n_views=args.views, width=args.size[0], height=args.size[1], seed=args.seed,
+                         gloss=args.gloss, hfov_deg=args.hfov,
+                         relit=tuple(t for t in args.relit.split(",") if t) if args.relit != "none" else ())
+    if args.sun is not None:
+        config = with_overrides(config, sun_azimuth_deg=args.sun[0], sun_elevation_deg=args.sun[1])
+    changes = {"render_spp": args.spp, "render_sun": not args.overcast, "render_turbidity": args.turbidity}
+    proxy_fields = {f.name: f.type for f in fields(config.proxy)}
+    for item in args.degrade:
+        key, _, value = item.partition("=")
+        if key not in proxy_fields:
+            raise ValueError(f"--degrade {item!r}: unknown knob {key!r}; knobs are {sorted(proxy_fields)}")
+        changes[f"proxy_{key}"] = _parse_knob(value, getattr(config.proxy, key))
+    config = with_overrides(config, **changes)
+    info = synthesize(args.recipe, args.out, config=config, overwrite=args.overwrite, progress=not args.quiet)
+    per = info["seconds_per_render"]
+    print(f"wrote {args.out}: {info['views']} views {info['width']}x{info['height']}, "
+          f"sun azimuth {info['sun_azimuth_deg']:.1f} deg, elevation {info['sun_elevation_deg']:.1f} deg")
+    print("seconds per render: " + ", ".join(f"{k} {v:.1f}" for k, v in per.items() if v is not None)
+          + f"; total {info['seconds_total']:.0f} s")
+    q = info["proxy"]
+    print(f"proxy: {q['vertices']} vertices, {q['within_10cm']:.1%} within 10 cm of the exact mesh, "
+          f"foliage retention {q['foliage_retention']:.1%}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     """The argument parser of the ``mvintrinsic`` command."""
     parser = argparse.ArgumentParser(
@@ -126,6 +210,30 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--max-size", type=int, default=None, help="downscale images to this longer side")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(run=_cmd_info)
+
+    demo = commands.add_parser("demo", help="run on the embedded demo scene")
+    demo.add_argument("--out", type=Path, default=Path("mvintrinsic-demo"), help="folder for the previews")
+    demo.set_defaults(run=_cmd_demo)
+
+    synth = commands.add_parser("synth", help="render a synthetic scene with ground truth (needs mitsuba)")
+    synth.add_argument("recipe", help="scene recipe (courtyard, street)")
+    synth.add_argument("out", type=Path, help="output scene folder (absent or empty)")
+    synth.add_argument("--views", type=int, default=8, help="number of views (default 8)")
+    synth.add_argument("--size", type=_parse_size, default=(320, 240), help="WIDTHxHEIGHT (default 320x240)")
+    synth.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
+    synth.add_argument("--seed", type=int, default=0, help="seed of the recipe, sun, sampler and proxy")
+    synth.add_argument("--sun", type=_parse_sun, default=None, help="AZIMUTH,ELEVATION in degrees (default: drawn)")
+    synth.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees")
+    synth.add_argument("--relit", default=",".join(("az+15", "az-30", "el+10")),
+                       help="comma-separated relit tags like az+15,el+10, or 'none'")
+    synth.add_argument("--degrade", action="append", default=[], metavar="KNOB=VALUE",
+                       help="proxy degradation, e.g. depth_noise=0.02 (repeatable)")
+    synth.add_argument("--turbidity", type=float, default=3.0, help="sky turbidity (default 3)")
+    synth.add_argument("--overcast", action="store_true", help="sun off (sky only)")
+    synth.add_argument("--gloss", action="store_true", help="mildly glossy materials (stress test)")
+    synth.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
+    synth.add_argument("--quiet", action="store_true", help="no progress bar")
+    synth.set_defaults(run=_cmd_synth)
     return parser
 
 
@@ -134,7 +242,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (SceneError, ResultFolderError, ValueError) as exc:
+    except (SceneError, ResultFolderError, ValueError, FileExistsError, ImportError) as exc:
         print(f"mvintrinsic {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

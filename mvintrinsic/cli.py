@@ -222,7 +222,7 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--size", type=_parse_size, default=(320, 240), help="WIDTHxHEIGHT (default 320x240)")
     synth.add_argument("--spp", type=int, default=64, help="samples per pixel (default 64)")
     synth.add_argument("--seed", type=int, default=0, help="seed of the recipe, sun, sampler and proxy")
-    synth.add_argument("--sun", type=_parse_sun, default=None, help="AZIMUTH,ELEVATION in degrees (default: drawn)")
+    synth.add_argument("--sun", type=_parse_sun, default=None, help="AZIMUTH,ELEVATION in degrees, e.g. --sun=-30,40 (default: drawn from the seed)")
     synth.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees")
     synth.add_argument("--relit", default=",".join(("az+15", "az-30", "el+10")),
                        help="comma-separated relit tags like az+15,el+10, or 'none'")

@@ -235,3 +235,34 @@ def test_writer_refuses_scene_folders_and_foreign_folders(tmp_path, scene_dir):
     mio.save_decomposition(result, foreign, overwrite=True)
     assert (foreign / "thesis.tex").read_text() == "precious"
     assert (foreign / "lighting.json").is_file()
+
+
+def test_proxy_and_colmap_writers_round_trip(tmp_path):
+    from mvintrinsic import Proxy
+
+    rng = np.random.default_rng(0)
+    vertices = rng.uniform(-5, 5, (50, 3))
+    normals = rng.normal(size=(50, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    triangles = rng.integers(0, 50, (30, 3))
+    triangles = triangles[(triangles[:, 0] != triangles[:, 1]) & (triangles[:, 1] != triangles[:, 2])
+                          & (triangles[:, 0] != triangles[:, 2])]
+    used = np.unique(triangles)
+    mesh = Proxy(vertices, normals, triangles)
+    back = mio.read_proxy(mio.write_proxy(tmp_path / "mesh.ply", mesh))
+    assert back.is_mesh and len(back.triangles) == len(triangles)
+    # Unreferenced vertices are dropped on reading; the referenced ones keep their order.
+    np.testing.assert_allclose(back.vertices, vertices[used], atol=1e-6)  # float32 storage
+    np.testing.assert_allclose(back.normals, normals[used], atol=1e-6)
+    np.testing.assert_array_equal(back.vertices[back.triangles], back.vertices[np.searchsorted(used, triangles)])
+    cloud = mio.read_proxy(mio.write_proxy(tmp_path / "cloud.ply", Proxy(vertices, normals)))
+    assert not cloud.is_mesh
+    np.testing.assert_allclose(cloud.vertices, vertices, atol=1e-6)
+
+    cameras = mio.read_colmap(make_scene(tmp_path / "s", model="OPENCV") / "sparse")
+    again = mio.read_colmap(mio.write_colmap_text(tmp_path / "sparse", cameras))
+    assert again.keys() == cameras.keys()
+    for name, cam in cameras.items():
+        np.testing.assert_allclose(again[name].params, cam.params, rtol=1e-15)
+        np.testing.assert_allclose(again[name].rotation, cam.rotation, atol=1e-15)
+        np.testing.assert_allclose(again[name].translation, cam.translation, atol=1e-14)

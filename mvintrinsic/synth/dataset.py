@@ -61,10 +61,11 @@ class SynthConfig:
         Distance between consecutive camera centres, metres (wide baseline, about 1 m).
     sun_azimuth_deg, sun_elevation_deg : float, optional
         Sun position (azimuth counter-clockwise from +X, elevation above the horizon). ``None``
-        draws them from the seed: elevation uniform in [30, 55] degrees, azimuth 55-80 degrees to
-        either side of the direction from the scene toward the cameras: side light that still
-        reaches the facades facing the cameras, so cast shadows fall across the ground in view
-        (with the sun behind the cameras they hide behind their casters).
+        draws them from the seed: elevation uniform in [30, 55] degrees, azimuth 20-50 degrees to
+        either side of the direction from the scene toward the cameras. This oblique front light
+        lights the facades facing the cameras and throws the shadows of the tree, the pole and the
+        statue sideways onto them, in view (a sun straight behind the cameras hides each shadow
+        behind its caster; a side or back light leaves the facades in attached shadow).
     relit : tuple of str
         Tags of the relit renders, e.g. ``("az+15", "el+10")``.
     gloss : bool
@@ -117,7 +118,7 @@ def _sun_angles(scene: SynthScene, config: SynthConfig) -> tuple[float, float]:
     rng = np.random.default_rng([config.seed, 7])
     toward_cameras = scene.path.center - scene.path.target
     facing = math.degrees(math.atan2(toward_cameras[1], toward_cameras[0]))
-    offset = rng.uniform(55.0, 80.0) * rng.choice([-1.0, 1.0])
+    offset = rng.uniform(20.0, 50.0) * rng.choice([-1.0, 1.0])
     azimuth = config.sun_azimuth_deg if config.sun_azimuth_deg is not None else facing + offset
     elevation = config.sun_elevation_deg if config.sun_elevation_deg is not None else rng.uniform(30.0, 55.0)
     return (azimuth + 180.0) % 360.0 - 180.0, elevation

@@ -143,3 +143,19 @@ def test_config_validation_and_overrides():
         synthesize("nope", "/nonexistent/never-written", config=TINY)
     config = with_overrides(TINY, proxy_voxel_size=0.1, render_spp=4, n_views=3)
     assert (config.proxy.voxel_size, config.render.spp, config.n_views) == (0.1, 4, 3)
+
+
+def test_cli_synth(tmp_path, capsys):
+    from mvintrinsic.cli import main
+
+    out = tmp_path / "cli"
+    args = ["synth", "courtyard", str(out), "--views", "2", "--size", "48x36", "--spp", "2", "--relit", "none",
+            "--degrade", "voxel_size=0.1", "--degrade", "depth_noise=0.02", "--sun=-100,40", "--quiet"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    assert "seconds per render" in printed and "azimuth -100.0" in printed
+    assert load_scene(out).views[0].shape == (36, 48)
+    assert main(args) == 2  # OUT is not empty now
+    assert "overwrite" in capsys.readouterr().err
+    assert main(["synth", "courtyard", str(tmp_path / "x"), "--degrade", "wobble=3"]) == 2
+    assert "unknown knob 'wobble'" in capsys.readouterr().err

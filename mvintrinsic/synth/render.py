@@ -31,7 +31,7 @@ import numpy as np
 from ..camera import Camera
 from .types import SynthScene
 
-__all__ = ["MitsubaScene", "RenderConfig", "sun_vector", "Renders", "import_mitsuba", "render_view", "sun_radiance", "write_ply_with_uvs"]
+__all__ = ["MitsubaScene", "RenderConfig", "Renders", "import_mitsuba", "sun_radiance", "sun_vector", "write_ply_with_uvs"]
 
 #: Solar disc aperture (full angle, degrees) used by Mitsuba's sunsky by default.
 SUN_APERTURE_DEG = 0.5358
@@ -269,8 +269,3 @@ def sun_radiance(sun_direction: Sequence[float], config: RenderConfig, *, size: 
     })
     image = np.array(mi.render(scene), dtype=np.float64)[..., :3]
     return image.reshape(-1, 3).mean(axis=0)
-
-
-def render_view(scene: MitsubaScene, camera: Camera, sun_direction, config: RenderConfig, **kwargs) -> Renders:
-    """Functional alias of :meth:`MitsubaScene.render`."""
-    return scene.render(camera, np.asarray(sun_direction, dtype=np.float64), config, **kwargs)

@@ -1,8 +1,11 @@
-"""Ray casting against the proxy (open3d / Embree).
+"""Ray casting against the proxy (open3d / Embree) and Step 1 of the paper (Sec. 4).
 
 A :class:`Tracer` is built once per proxy and answers batched queries: first hits and occlusion.
-The paper ray-traces the proxy to compute sky and indirect shading and the approximate sun
-visibility (Duchêne et al. 2015, Sec. 4), and lifts the user's two sun clicks to 3D (Sec. 3.2).
+On it, :func:`step1` estimates what the paper's Step 1 computes "by ray-tracing the inaccurate 3D
+model and sky map": the completed environment map and sky model (via :mod:`.skymodel`), the
+median radiance of every proxy vertex, ``S_sky`` and ``S_ind`` by hemisphere ray casting with
+the paper's attenuation factor, and the proxy sun visibility ``~v`` (Duchêne et al. 2015,
+Sec. 4). The same tracer lifts the user's two sun clicks to 3D (Sec. 3.2).
 
 Point-cloud proxies (the paper uses the vertices of the reconstructed mesh as a point cloud) are
 traced as *surfels*: every point becomes a small square of two triangles centred on the point,
@@ -13,16 +16,39 @@ closed where the sampling is dense.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from types import MappingProxyType
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ._libusb import ensure_libusb
 from ._validation import describe
-from .scene import Proxy
+from .camera import Camera
+from .scene import Proxy, Scene, View
+from .skymodel import EnvironmentMap, HorizonPlane, SkyConfig, SkyModel, estimate_environment, horizon_plane
 
-__all__ = ["RayHits", "Tracer"]
+__all__ = [
+    "PointShading",
+    "RayHits",
+    "Step1Config",
+    "Step1Result",
+    "Tracer",
+    "cosine_hemisphere",
+    "depth_map",
+    "environment_shading",
+    "interpolate_points",
+    "morton_order",
+    "rasterize",
+    "step1",
+    "subdivide",
+    "sun_visibility",
+    "tangent_frames",
+    "vertex_radiance",
+    "voxel_subsample",
+]
 
 #: Rays per Embree call; bounds the temporary memory (about 100 bytes a ray).
 DEFAULT_BATCH = 1 << 20
@@ -49,6 +75,9 @@ class RayHits:
     triangle : (N,) int64
         Index of the hit triangle of a mesh proxy (of the surfel's point for point clouds); -1
         where ``hit`` is False.
+    barycentric : (N, 3) float64
+        Weights of the hit triangle's three vertices (``proxy.triangles[triangle]``) at the hit;
+        NaN where ``hit`` is False or for point clouds.
     """
 
     hit: np.ndarray
@@ -57,6 +86,7 @@ class RayHits:
     normals: np.ndarray
     vertex: np.ndarray
     triangle: np.ndarray
+    barycentric: np.ndarray
 
 
 def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -174,6 +204,7 @@ class Tracer:
         normals = np.full((n, 3), np.nan)
         vertex = np.full(n, -1, dtype=np.int64)
         triangle = np.full(n, -1, dtype=np.int64)
+        barycentric = np.full((n, 3), np.nan)
         for start in range(0, n, batch):
             sl = slice(start, min(start + batch, n))
             o = origins[sl] + t_min * directions[sl]
@@ -191,6 +222,7 @@ class Tracer:
                 triangle[idx] = prim[local]
                 uv = answer["primitive_uvs"].numpy().astype(np.float64)[local]
                 bary = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+                barycentric[idx] = bary
                 vertex[idx] = self._triangle_vertices[prim[local], np.argmax(bary, axis=1)]
             nrm = nrm[local]
             nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
@@ -199,7 +231,27 @@ class Tracer:
             normals[idx] = nrm
         hit = np.isfinite(t)
         points = np.where(hit[:, None], origins + np.where(hit, t, 0.0)[:, None] * directions, np.nan)
-        return RayHits(hit=hit, t=t, points=points, normals=normals, vertex=vertex, triangle=triangle)
+        return RayHits(hit=hit, t=t, points=points, normals=normals, vertex=vertex, triangle=triangle,
+                       barycentric=barycentric)
+
+    def interpolate(self, values: np.ndarray, hits: RayHits) -> np.ndarray:
+        """Per-vertex ``values (N, ...)`` at the hit points, ``(R, ...)`` float64, NaN on misses.
+
+        Barycentric interpolation over the hit triangle for meshes, the surfel's point value for
+        point clouds.
+        """
+        values = np.asarray(values, dtype=np.float64)
+        if len(values) != len(self.proxy.vertices):
+            raise ValueError(f"values must have one row per proxy vertex ({len(self.proxy.vertices)}), got {len(values)}")
+        out = np.full((len(hits.hit), *values.shape[1:]), np.nan)
+        idx = np.flatnonzero(hits.hit)
+        if self._triangle_vertices is None:
+            out[idx] = values[hits.vertex[idx]]
+        else:
+            corners = self._triangle_vertices[hits.triangle[idx]]
+            weights = hits.barycentric[idx].reshape(len(idx), 3, *([1] * (values.ndim - 1)))
+            out[idx] = np.sum(values[corners] * weights, axis=1)
+        return out
 
     def occluded(
         self,
@@ -227,3 +279,558 @@ class Tracer:
 
     def __repr__(self) -> str:
         return f"Tracer({self.proxy!r})"
+
+
+# ---------------------------------------------------------------------------------------------
+# Step 1 (paper Sec. 4): proxy radiance, sky and indirect shading, proxy sun visibility
+# ---------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Step1Config:
+    """Options of Step 1 (paper Sec. 4); defaults measured in ``benchmarks/bench_step1.py``.
+
+    Parameters
+    ----------
+    n_rays : int
+        Cosine-weighted, stratified hemisphere rays per point for ``S_sky`` and ``S_ind`` (the
+        paper does not give its count): 64 is within 5% of a 256-ray reference on the benchmark.
+    ray_offset : float
+        Metres the ray origins move along the normal, against self-intersection with a noisy
+        proxy (about a TSDF voxel).
+    indirect_attenuation : bool
+        Scale gathered proxy radiance by the cosine of the contributing surface's normal, the
+        paper's attenuation factor against over-estimated indirect light (Sec. 4).
+    subsample : float or None
+        Voxel size (metres) of the points at which ``S_sky`` and ``S_ind`` are ray traced; the
+        other vertices interpolate them (they are smooth). ``None``: every vertex.
+    interpolation_neighbors : int
+        Traced points interpolated per vertex (inverse distance, weighted by normal agreement).
+    depth_tolerance : float
+        Relative depth slack of the visibility test when gathering vertex radiance from views.
+    sky : SkyConfig
+        Environment-map, sky-detector and sky-fit options.
+    batch_rays : int
+        Rays per Embree call.
+    """
+
+    n_rays: int = 64
+    ray_offset: float = 0.02
+    indirect_attenuation: bool = True
+    subsample: float | None = 0.1
+    interpolation_neighbors: int = 8
+    depth_tolerance: float = 0.02
+    sky: SkyConfig = field(default_factory=SkyConfig)
+    batch_rays: int = 1 << 21
+
+    def __post_init__(self) -> None:
+        if isinstance(self.n_rays, bool) or not isinstance(self.n_rays, int) or self.n_rays < 1:
+            raise ValueError(f"n_rays must be a positive integer, got {self.n_rays!r}")
+        if not self.ray_offset >= 0:
+            raise ValueError(f"ray_offset must be >= 0 metres, got {self.ray_offset!r}")
+        if self.subsample is not None and not self.subsample > 0:
+            raise ValueError(f"subsample must be a positive voxel size in metres or None, got {self.subsample!r}")
+        if self.interpolation_neighbors < 1:
+            raise ValueError(f"interpolation_neighbors must be >= 1, got {self.interpolation_neighbors!r}")
+        if not self.depth_tolerance > 0:
+            raise ValueError(f"depth_tolerance must be positive, got {self.depth_tolerance!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class PointShading:
+    """Step-1 shading at every proxy vertex (paper Sec. 4).
+
+    Parameters
+    ----------
+    sky : (N, 3) float32
+        ``S_sky``: sky radiance integrated over the normal's hemisphere, shading units.
+    indirect : (N, 3) float32
+        ``S_ind``: radiance from the proxy and from non-sky texels of the environment map.
+    visibility : (N,) float32
+        Proxy sun visibility ``~v`` in {0, 1}: 0 when a shadow ray toward the sun hits the proxy
+        or the point faces away from the sun (attached shadow).
+    cosine : (N,) float32
+        ``max(0, cos omega_sun)`` with the vertex normal.
+    """
+
+    sky: np.ndarray
+    indirect: np.ndarray
+    visibility: np.ndarray
+    cosine: np.ndarray
+
+    @property
+    def env(self) -> np.ndarray:
+        """``S_env = S_sky + S_ind`` (Eq. 3), (N, 3) float32."""
+        return self.sky + self.indirect
+
+
+@dataclass(frozen=True, eq=False)
+class Step1Result:
+    """Everything Step 1 estimates and later steps read.
+
+    Parameters
+    ----------
+    environment : EnvironmentMap
+        Completed environment map with its sky mask.
+    sky_model : SkyModel
+        The fitted Preetham sky (Eq. 4).
+    horizon : HorizonPlane
+        Main horizontal plane of the proxy.
+    radiance : (N, 3) float32
+        Median observed radiance of every proxy vertex over the views that see it (NaN: unseen).
+    observations : (N,) int32
+        Number of views that see each vertex.
+    shading : PointShading
+        ``S_sky``, ``S_ind``, ``~v`` and the sun cosine per vertex.
+    normals : (N, 3) float64
+        The proxy's vertex normals the quantities refer to.
+    timings : mapping of str to float
+        Seconds per sub-stage.
+    config : Step1Config
+    """
+
+    environment: EnvironmentMap
+    sky_model: SkyModel
+    horizon: HorizonPlane
+    radiance: np.ndarray
+    observations: np.ndarray
+    shading: PointShading
+    normals: np.ndarray
+    timings: Mapping[str, float]
+    config: Step1Config
+
+
+def _rng(rng: np.random.Generator | int | None) -> np.random.Generator:
+    return rng if isinstance(rng, np.random.Generator) else np.random.default_rng(rng)
+
+
+def tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit tangents ``(t, b)`` with ``(t, b, n)`` right-handed, each (N, 3)."""
+    axis = np.eye(3)[np.argmin(np.abs(normals), axis=1)]
+    t = np.cross(normals, axis)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    return t, np.cross(normals, t)
+
+
+def cosine_hemisphere(normals: np.ndarray, n_rays: int, *, rng: np.random.Generator | int | None = None) -> np.ndarray:
+    """Stratified cosine-weighted directions about each normal, (N, n_rays, 3).
+
+    The unit square is split into ``n_rays`` strata (a ``k x k`` grid when ``n_rays = k^2``,
+    otherwise ``n_rays`` rows), jittered, mapped to the disc by Shirley and Chiu's concentric map
+    and lifted to the hemisphere (Malley's method), so the pdf is ``cos(theta) / pi`` and the
+    mean of the incoming radiance over the rays estimates irradiance / pi, i.e. shading.
+    """
+    normals = np.asarray(normals, dtype=np.float64)
+    gen = _rng(rng)
+    k = int(round(np.sqrt(n_rays)))
+    if k * k == n_rays:
+        i, j = np.divmod(np.arange(n_rays), k)
+        nx, ny = k, k
+    else:
+        i, j, nx, ny = np.arange(n_rays), np.zeros(n_rays), n_rays, 1
+    u = (i + gen.random((len(normals), n_rays))) / nx
+    v = (j + gen.random((len(normals), n_rays))) / ny
+    a, b = 2.0 * u - 1.0, 2.0 * v - 1.0  # concentric map (Shirley & Chiu 1997)
+    first = np.abs(a) > np.abs(b)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(first, a, b)
+        phi = np.where(first, (np.pi / 4) * (b / a), (np.pi / 2) - (np.pi / 4) * (a / b))
+    phi = np.where((a == 0) & (b == 0), 0.0, phi)
+    x, y = r * np.cos(phi), r * np.sin(phi)
+    z = np.sqrt(np.maximum(0.0, 1.0 - x * x - y * y))
+    t, bt = tangent_frames(normals)
+    return x[..., None] * t[:, None] + y[..., None] * bt[:, None] + z[..., None] * normals[:, None]
+
+
+def morton_order(points: np.ndarray, *, bits: int = 10) -> np.ndarray:
+    """Indices sorting ``points (N, 3)`` along a Z-order curve (spatially coherent ray batches)."""
+    points = np.asarray(points, dtype=np.float64)
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    q = ((points - lo) / np.maximum(hi - lo, 1e-12) * ((1 << bits) - 1)).astype(np.uint64)
+    code = np.zeros(len(points), dtype=np.uint64)
+    for bit in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(bit)) & np.uint64(1)) << np.uint64(3 * bit + axis)
+    return np.argsort(code, kind="stable")
+
+
+def depth_map(camera: Camera, tracer: Tracer) -> np.ndarray:
+    """Distance (metres) from the camera centre to the proxy along every pixel ray, (H, W);
+    ``inf`` where the ray misses the proxy."""
+    return tracer.intersect(camera.center, camera.pixel_rays()).t.reshape(camera.shape)
+
+
+def vertex_radiance(
+    views: Sequence[View],
+    tracer: Tracer,
+    *,
+    depth_tolerance: float = 0.02,
+    depths: Sequence[np.ndarray] | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Median observed radiance of every proxy vertex (paper Sec. 4).
+
+    Each vertex is projected into every view; it counts as seen when it lies in the image, in
+    front of the camera, faces it, its pixel is valid and its distance is within
+    ``depth_tolerance`` (relative) of the proxy's depth map at that pixel (occlusion test). Its
+    radiance there is the bilinearly interpolated image value; the estimate is the per-channel
+    median over the views that see it ("We assign the median of the gathered values as the
+    approximate diffuse radiance of the vertex").
+
+    Returns
+    -------
+    radiance : (N, 3) float32
+        NaN for vertices no view sees.
+    count : (N,) int32
+        Number of views that see each vertex.
+    """
+    from tqdm.auto import tqdm
+
+    proxy = tracer.proxy
+    n = len(proxy.vertices)
+    samples = np.full((len(views), n, 3), np.nan, dtype=np.float32)
+    for k, view in enumerate(tqdm(views, desc="vertex radiance", unit="view", disable=not progress)):
+        camera = view.camera
+        depth = depths[k] if depths is not None else depth_map(camera, tracer)
+        pixels, z = camera.project(proxy.vertices)
+        inside = (z > 0) & camera.in_image(pixels)
+        to_camera = camera.center - proxy.vertices
+        distance = np.linalg.norm(to_camera, axis=1)
+        facing = np.einsum("ij,ij->i", proxy.normals, to_camera) > 0
+        idx = np.flatnonzero(inside & facing)
+        col = np.clip(pixels[idx, 0].astype(np.int64), 0, camera.width - 1)
+        row = np.clip(pixels[idx, 1].astype(np.int64), 0, camera.height - 1)
+        seen = (distance[idx] <= depth[row, col] * (1.0 + depth_tolerance)) & view.mask[row, col]
+        idx, col, row = idx[seen], col[seen], row[seen]
+        image = np.where(view.mask[..., None], view.image, 0.0).astype(np.float32)
+        samples[k, idx] = _bilinear(image, pixels[idx, 0] - 0.5, pixels[idx, 1] - 0.5)
+    count = np.sum(np.isfinite(samples[..., 0]), axis=0).astype(np.int32)
+    radiance = np.full((n, 3), np.nan, dtype=np.float32)
+    seen = count > 0
+    radiance[seen] = np.nanmedian(samples[:, seen], axis=0)
+    return radiance, count
+
+
+def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Bilinear samples of ``image (H, W, C)`` at array coordinates ``(x, y)`` (column, row of
+    pixel centres), edges clamped; (N, C)."""
+    h, w = image.shape[:2]
+    x = np.clip(x, 0.0, w - 1.0)
+    y = np.clip(y, 0.0, h - 1.0)
+    x0 = np.minimum(x.astype(np.int64), w - 2) if w > 1 else np.zeros(len(x), np.int64)
+    y0 = np.minimum(y.astype(np.int64), h - 2) if h > 1 else np.zeros(len(y), np.int64)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    x1, y1 = np.minimum(x0 + 1, w - 1), np.minimum(y0 + 1, h - 1)
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def _fill_unseen(values: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Give NaN rows the value of the nearest finite row (unseen vertices still reflect light)."""
+    bad = ~np.isfinite(values).all(axis=1)
+    if not bad.any() or bad.all():
+        return np.where(np.isfinite(values), values, 0.0)
+    _, nearest = cKDTree(points[~bad]).query(points[bad])
+    filled = values.copy()
+    filled[bad] = values[~bad][nearest]
+    return filled
+
+
+def sun_visibility(points: np.ndarray, normals: np.ndarray, sun_direction: np.ndarray, tracer: Tracer, *,
+                   ray_offset: float = 0.02, batch: int = DEFAULT_BATCH) -> np.ndarray:
+    """Proxy sun visibility ``~v`` (Sec. 4): 1 when the point faces the sun and a shadow ray
+    toward it, started ``ray_offset`` metres off the surface, escapes the proxy; else 0. (N,)."""
+    sun = np.asarray(sun_direction, dtype=np.float64)
+    facing = normals @ sun > 0
+    out = np.zeros(len(points), dtype=np.float32)
+    idx = np.flatnonzero(facing)
+    origins = points[idx] + ray_offset * normals[idx]
+    out[idx] = ~tracer.occluded(origins, np.broadcast_to(sun, (len(idx), 3)), batch=batch)
+    return out
+
+
+def environment_shading(
+    points: np.ndarray,
+    normals: np.ndarray,
+    tracer: Tracer,
+    environment: EnvironmentMap,
+    radiance: np.ndarray,
+    *,
+    n_rays: int = 64,
+    ray_offset: float = 0.02,
+    attenuation: bool = True,
+    rng: np.random.Generator | int | None = None,
+    batch_rays: int = 1 << 21,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``S_sky`` and ``S_ind`` at points by hemisphere ray casting (paper Sec. 4).
+
+    For each point, ``n_rays`` cosine-weighted stratified rays about its normal are cast against
+    the proxy (points are processed in Morton order, a batch at a time, so neighbouring rays
+    traverse the same part of the BVH). A ray that misses the proxy reads the environment map in
+    its direction: sky texels feed ``S_sky``, other texels ``S_ind``. A ray that hits the proxy
+    feeds ``S_ind`` with the radiance interpolated from the hit triangle's vertices, times the
+    cosine between the hit surface's normal and the ray when ``attenuation`` (the paper's
+    attenuation factor). With cosine-weighted sampling the mean over the rays is the shading
+    (irradiance / pi).
+
+    Parameters
+    ----------
+    points, normals : (P, 3) array_like
+        World positions (m) and unit normals.
+    tracer : Tracer
+    environment : EnvironmentMap
+    radiance : (N, 3) array_like
+        Radiance of every proxy vertex (NaN rows get their nearest seen neighbour's value).
+
+    Returns
+    -------
+    sky, indirect : (P, 3) float32
+    """
+    from tqdm.auto import tqdm
+
+    points = np.asarray(points, dtype=np.float64)
+    normals = np.asarray(normals, dtype=np.float64)
+    gen = _rng(rng)
+    vertex_values = _fill_unseen(np.asarray(radiance, dtype=np.float64), tracer.proxy.vertices)
+    order = morton_order(points)
+    sky = np.zeros((len(points), 3))
+    indirect = np.zeros((len(points), 3))
+    per_batch = max(1, batch_rays // n_rays)
+    for start in tqdm(range(0, len(points), per_batch), desc="hemisphere rays", unit="batch", disable=not progress):
+        idx = order[start:start + per_batch]
+        directions = cosine_hemisphere(normals[idx], n_rays, rng=gen).reshape(-1, 3)
+        origins = np.repeat(points[idx] + ray_offset * normals[idx], n_rays, axis=0)
+        hits = tracer.intersect(origins, directions, batch=len(directions))
+        contribution = np.zeros((len(directions), 3))
+        miss = ~hits.hit
+        env = environment.lookup(directions[miss]).astype(np.float64)
+        is_sky = environment.is_sky(directions[miss])
+        to_sky = np.zeros((len(directions), 3))
+        to_sky[np.flatnonzero(miss)[is_sky]] = env[is_sky]
+        contribution[np.flatnonzero(miss)[~is_sky]] = env[~is_sky]
+        gathered = tracer.interpolate(vertex_values, hits)
+        if attenuation:
+            gathered *= np.abs(np.einsum("ij,ij->i", hits.normals, directions))[:, None]
+        contribution[hits.hit] = gathered[hits.hit]
+        sky[idx] = to_sky.reshape(len(idx), n_rays, 3).mean(axis=1)
+        indirect[idx] = contribution.reshape(len(idx), n_rays, 3).mean(axis=1)
+    return sky.astype(np.float32), indirect.astype(np.float32)
+
+
+def voxel_subsample(points: np.ndarray, voxel: float) -> np.ndarray:
+    """Indices of one point per occupied ``voxel``-sized cell (the one nearest its centre)."""
+    points = np.asarray(points, dtype=np.float64)
+    cell = np.floor(points / voxel)
+    offset = np.linalg.norm(points - (cell + 0.5) * voxel, axis=1)
+    _, inverse = np.unique(cell, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    order = np.lexsort((offset, inverse))
+    first = np.ones(len(order), dtype=bool)
+    first[1:] = inverse[order][1:] != inverse[order][:-1]
+    return np.sort(order[first])
+
+
+def interpolate_points(
+    source_points: np.ndarray,
+    source_normals: np.ndarray,
+    values: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    neighbors: int = 8,
+) -> np.ndarray:
+    """Scatter-to-vertex interpolation of smooth per-point quantities.
+
+    Each target point averages its ``neighbors`` nearest source points with weights
+    ``max(0, n . n_s)^4 / (d + eps)`` (inverse distance, and normal agreement so that values do not
+    leak across creases, e.g. from a wall to the ground); a target whose neighbours all face
+    elsewhere takes the nearest source's value.
+    """
+    k = min(neighbors, len(source_points))
+    distance, nearest = cKDTree(source_points).query(points, k=k)
+    distance, nearest = distance.reshape(len(points), k), nearest.reshape(len(points), k)
+    agreement = np.maximum(np.einsum("ij,ikj->ik", normals, source_normals[nearest]), 0.0) ** 4
+    weights = agreement / (distance + 1e-3)
+    total = weights.sum(axis=1, keepdims=True)
+    out = np.einsum("ik,ikc->ic", weights, values[nearest]) / np.where(total > 0, total, 1.0)
+    lonely = total[:, 0] <= 0
+    out[lonely] = values[nearest[lonely, 0]]
+    return out
+
+
+def subdivide(proxy: Proxy, *, max_edge: float, center: np.ndarray | None = None, radius: float = np.inf,
+              max_passes: int = 16) -> Proxy:
+    """Split the triangles of a mesh proxy until no edge near ``center`` exceeds ``max_edge``.
+
+    Step 1 carries its quantities on vertices: a mesh whose triangles are metres wide (a CAD
+    model, the exact geometry of a synthetic scene) interpolates shading and visibility across
+    them. Each pass splits every triangle whose longest edge exceeds ``max_edge`` and whose
+    centroid lies within ``radius`` of ``center`` into four at its edge midpoints; midpoint
+    normals are the normalised mean of the edge's end normals. A split triangle next to an
+    unsplit one leaves a T-junction: harmless for ray casting and interpolation here.
+
+    Parameters
+    ----------
+    proxy : Proxy
+        A mesh proxy (point clouds raise ValueError).
+    max_edge : float
+        Longest edge allowed, metres.
+    center : (3,) array_like, optional
+        Only triangles within ``radius`` metres of it are split (e.g. the cameras' centroid, so
+        a far ground ring stays coarse). Default: all triangles.
+    radius : float, optional
+    max_passes : int, optional
+        Each pass halves edges; 16 passes divide them by 65536.
+
+    Returns
+    -------
+    Proxy
+        Original vertices first (same indices), then the midpoints (colours averaged too).
+    """
+    if not proxy.is_mesh:
+        raise ValueError("proxy must be a mesh to be subdivided, got a point cloud")
+    if not max_edge > 0:
+        raise ValueError(f"max_edge must be positive (metres), got {max_edge!r}")
+    vertices, normals, triangles = proxy.vertices.copy(), proxy.normals.copy(), proxy.triangles.copy()
+    colors = None if proxy.colors is None else proxy.colors.copy()
+    center = None if center is None else np.asarray(center, dtype=np.float64)
+    for _ in range(max_passes):
+        a, b, c = (vertices[triangles[:, i]] for i in range(3))
+        longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1),
+                          np.linalg.norm(a - c, axis=1)], axis=0)
+        split = longest > max_edge
+        if center is not None:
+            split &= np.linalg.norm((a + b + c) / 3.0 - center, axis=1) < radius
+        if not split.any():
+            break
+        parts = triangles[split]
+        edges = np.concatenate([parts[:, [0, 1]], parts[:, [1, 2]], parts[:, [2, 0]]])
+        unique, inverse = np.unique(np.sort(edges, axis=1), axis=0, return_inverse=True)
+        inverse = inverse.ravel() + len(vertices)
+        mid_normals = normals[unique[:, 0]] + normals[unique[:, 1]]
+        length = np.linalg.norm(mid_normals, axis=1, keepdims=True)
+        mid_normals = np.where(length > 1e-12, mid_normals / np.maximum(length, 1e-12), normals[unique[:, 0]])
+        vertices = np.concatenate([vertices, 0.5 * (vertices[unique[:, 0]] + vertices[unique[:, 1]])])
+        normals = np.concatenate([normals, mid_normals])
+        if colors is not None:
+            colors = np.concatenate([colors, 0.5 * (colors[unique[:, 0]] + colors[unique[:, 1]])])
+        n = len(parts)
+        m01, m12, m20 = inverse[:n], inverse[n:2 * n], inverse[2 * n:]
+        triangles = np.concatenate([
+            triangles[~split],
+            np.stack([parts[:, 0], m01, m20], axis=1),
+            np.stack([m01, parts[:, 1], m12], axis=1),
+            np.stack([m20, m12, parts[:, 2]], axis=1),
+            np.stack([m01, m12, m20], axis=1),
+        ])
+    return Proxy(vertices, normals, triangles, colors)
+
+
+def step1(
+    scene: Scene,
+    *,
+    config: Step1Config | None = None,
+    tracer: Tracer | None = None,
+    rng: np.random.Generator | int | None = None,
+    progress: bool = False,
+) -> Step1Result:
+    """Step 1 of the paper (Sec. 4): environment map, sky model, ``S_sky``, ``S_ind`` and ``~v``.
+
+    1. horizon: the main horizontal plane of the proxy (RANSAC);
+    2. coverage: camera rays of every view against the proxy; the valid pixels they miss are
+       splatted into a partial environment map (median over views);
+    3. sky: colour sky detector above the horizon, Preetham sky fit (Eq. 4), completion of the
+       map (model above the horizon, diffusion below);
+    4. proxy radiance: median of each vertex's observations;
+    5. ``S_sky`` and ``S_ind`` by cosine-weighted hemisphere rays at the proxy vertices (or at a
+       voxel subsample, interpolated to all vertices), ``~v`` by one shadow ray per vertex.
+
+    Parameters
+    ----------
+    scene : Scene
+    config : Step1Config, optional
+    tracer : Tracer, optional
+        A tracer already built over ``scene.proxy`` (saves rebuilding it).
+    rng : numpy.random.Generator or int, optional
+        Seeds RANSAC and the hemisphere sampling.
+    progress : bool, optional
+        Progress bars for the long parts.
+
+    Returns
+    -------
+    Step1Result
+    """
+    config = config or Step1Config()
+    gen = _rng(rng)
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    tracer = tracer if tracer is not None else Tracer(scene.proxy)
+    if tracer.proxy is not scene.proxy:
+        raise ValueError("tracer must be built over scene.proxy")
+    timings["tracer"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    horizon = horizon_plane(scene.proxy.vertices, up=scene.up, config=config.sky, rng=gen)
+    timings["horizon"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    depths = [depth_map(v.camera, tracer) for v in scene.views]
+    uncovered = [np.isinf(d) & v.mask for d, v in zip(depths, scene.views, strict=True)]
+    environment, sky_model = estimate_environment(
+        scene.views, uncovered, sun_direction=scene.sun.direction, horizon_normal=horizon.plane[:3],
+        up=scene.up, config=config.sky,
+    )
+    timings["environment"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    radiance, count = vertex_radiance(scene.views, tracer, depth_tolerance=config.depth_tolerance, depths=depths,
+                                      progress=progress)
+    timings["vertex_radiance"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    points, normals = scene.proxy.vertices, scene.proxy.normals
+    traced = np.arange(len(points)) if config.subsample is None else voxel_subsample(points, config.subsample)
+    sky, indirect = environment_shading(
+        points[traced], normals[traced], tracer, environment, radiance, n_rays=config.n_rays,
+        ray_offset=config.ray_offset, attenuation=config.indirect_attenuation, rng=gen,
+        batch_rays=config.batch_rays, progress=progress,
+    )
+    if len(traced) < len(points):
+        both = interpolate_points(points[traced], normals[traced], np.concatenate([sky, indirect], axis=1),
+                                  points, normals, neighbors=config.interpolation_neighbors)
+        sky, indirect = both[:, :3].astype(np.float32), both[:, 3:].astype(np.float32)
+    timings["environment_shading"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    visibility = sun_visibility(points, normals, scene.sun.direction, tracer, ray_offset=config.ray_offset)
+    cosine = np.maximum(normals @ scene.sun.direction, 0.0).astype(np.float32)
+    timings["sun_visibility"] = time.perf_counter() - start
+
+    for array in (radiance, count, sky, indirect, visibility, cosine):
+        array.flags.writeable = False
+    return Step1Result(
+        environment=environment, sky_model=sky_model, horizon=horizon, radiance=radiance, observations=count,
+        shading=PointShading(sky=sky, indirect=indirect, visibility=visibility, cosine=cosine),
+        normals=normals, timings=MappingProxyType(timings), config=config,
+    )
+
+
+def rasterize(values: np.ndarray, camera: Camera, tracer: Tracer) -> np.ndarray:
+    """Per-vertex quantities seen through a camera, for inspection and evaluation.
+
+    Parameters
+    ----------
+    values : (N, ...) array_like
+        One row per proxy vertex.
+    camera : Camera
+    tracer : Tracer
+
+    Returns
+    -------
+    (H, W, ...) float64
+        Each pixel's value interpolated at the proxy point its centre ray hits; NaN where the ray
+        misses the proxy.
+    """
+    values = np.asarray(values)
+    hits = tracer.intersect(camera.center, camera.pixel_rays())
+    return tracer.interpolate(values, hits).reshape(*camera.shape, *values.shape[1:])

@@ -19,36 +19,9 @@ from ._validation import as_array, as_unit_vector, describe
 from .camera import Camera
 from .raytrace import Tracer
 from .scene import Sun
+from .skymodel import horizontal_frame
 
 __all__ = ["azimuth_elevation", "horizontal_frame", "sun_from_clicks", "sun_from_time"]
-
-
-def horizontal_frame(up: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
-    """Orthonormal world frame ``(x_h, y_h, up)`` with ``x_h`` horizontal.
-
-    Parameters
-    ----------
-    up : (3,) array_like
-        World up vector (normalised here).
-    reference : (3,) array_like, optional
-        Direction whose horizontal projection becomes ``x_h``. Default: world +X, or +Y when
-        ``up`` is along +/-X (the environment-map reference axis of ``docs/conventions.md``).
-
-    Returns
-    -------
-    (3, 3) float64
-        Rows ``x_h``, ``y_h = up x x_h``, ``up``: azimuth grows counter-clockwise from ``x_h``
-        seen from above.
-    """
-    up = as_unit_vector(up, "up")
-    if reference is None:
-        reference = np.array([0.0, 1.0, 0.0]) if abs(up[0]) > 1.0 - 1e-9 else np.array([1.0, 0.0, 0.0])
-    ref = np.asarray(reference, dtype=np.float64)
-    x = ref - (ref @ up) * up
-    if np.linalg.norm(x) < 1e-9:
-        raise ValueError(f"reference {ref.tolist()} is parallel to up {up.tolist()}")
-    x /= np.linalg.norm(x)
-    return np.stack([x, np.cross(up, x), up])
 
 
 def azimuth_elevation(direction: np.ndarray, *, up: np.ndarray, reference: np.ndarray | None = None) -> tuple[float, float]:

@@ -232,3 +232,22 @@ def test_cli_gt_as_result(dev_courtyard, tmp_path, capsys):
     assert (tmp_path / "gt" / "lighting.json").is_file() and not (tmp_path / "gt" / "scores.json").exists()
     assert script.main([str(dev_courtyard), str(tmp_path / "missing")]) == 2
     assert "lighting.json" in capsys.readouterr().err
+
+
+def test_env_shading_and_visibility_errors_on_known_estimates():
+    """Ground truth scores 0; a uniform 10% excess scores exactly 0.1; all-lit visibility 0.5."""
+    from mvintrinsic.cli import demo_scene_path
+    from mvintrinsic.evaluation import env_shading_error, read_ground_truth, visibility_error
+
+    folder = demo_scene_path()
+    gt = read_ground_truth(folder, views=["view_000", "view_001"])
+    exact = {s: g.env_shading for s, g in gt.items()}
+    assert env_shading_error(folder, exact)["median_rel_error"] == [0.0, 0.0, 0.0]
+    scaled = env_shading_error(folder, {s: 1.1 * e for s, e in exact.items()}, region="all")
+    np.testing.assert_allclose(scaled["median_rel_error"], 0.1, rtol=1e-5)
+    np.testing.assert_allclose(scaled["median_signed_rel_error"], 0.1, rtol=1e-5)
+    visibility = {s: g.sun_visibility.astype(float) for s, g in gt.items()}
+    assert visibility_error(folder, visibility)["ber"] == 0.0
+    assert visibility_error(folder, {s: np.ones(v.shape) for s, v in visibility.items()})["ber"] == 0.5
+    with pytest.raises(ValueError, match="region"):
+        env_shading_error(folder, exact, region="dusk")

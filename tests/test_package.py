@@ -17,7 +17,10 @@ PACKAGE = Path(mvintrinsic.__file__).parent
 
 # Bottom to top. A core module may import only modules listed before it; the edge may import the
 # core, and the core never imports the edge (docs/architecture.md).
-CORE_LAYERS = ["_version", "_validation", "_libusb", "camera", "scene", "results", "raytrace", "sun_position"]
+CORE_LAYERS = [
+    "_version", "_validation", "_libusb", "camera", "scene", "results", "image_model", "skymodel", "raytrace",
+    "sun_position",
+]
 EDGE = {"io", "metrics", "cli", "evaluation", "preview", "__init__"}
 
 

@@ -154,11 +154,7 @@ class Tracer:
         spacing = distances[:, 1:].mean(axis=1)
         spacing = np.where(spacing > 0, spacing, np.median(spacing[spacing > 0]))
         half = (scale * spacing)[:, None]
-        # Tangent frame: a = n x e (e the axis least aligned with n), b = n x a.
-        axis = np.eye(3)[np.argmin(np.abs(normals), axis=1)]
-        a = np.cross(normals, axis)
-        a /= np.linalg.norm(a, axis=1, keepdims=True)
-        b = np.cross(normals, a)
+        a, b = tangent_frames(normals)
         corners = np.stack(
             [points + half * (-a - b), points + half * (a - b), points + half * (a + b), points + half * (-a + b)],
             axis=1,

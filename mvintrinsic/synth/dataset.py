@@ -30,7 +30,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..io import write_colmap_text, write_image, write_json, write_proxy
-from ..raytrace import Tracer
+from ..raytrace import Tracer, sun_visibility
 from .proxy import ProxyConfig, distance_to_mesh, foliage_retention, label_retention, simulate_mvs_proxy
 from .recipes import RECIPES, build_scene
 from .render import MitsubaScene, RenderConfig, sun_radiance, sun_vector
@@ -164,10 +164,7 @@ def _visibility_and_sky(tracer: Tracer, camera: Camera, sun: np.ndarray) -> tupl
     hits = tracer.intersect(camera.center, camera.pixel_rays())
     lit = np.zeros(len(hits.hit), dtype=bool)
     idx = np.flatnonzero(hits.hit)
-    facing = hits.normals[idx] @ sun > 0
-    idx = idx[facing]
-    origins = hits.points[idx] + SHADOW_RAY_OFFSET * hits.normals[idx]
-    lit[idx] = ~tracer.occluded(origins, np.broadcast_to(sun, (len(idx), 3)))
+    lit[idx] = sun_visibility(hits.points[idx], hits.normals[idx], sun, tracer, ray_offset=SHADOW_RAY_OFFSET) > 0
     return lit.reshape(camera.shape), ~hits.hit.reshape(camera.shape)
 
 

@@ -75,20 +75,12 @@ def scenes(make: bool) -> dict[str, Path]:
 
 
 def hosek_sky(sun: np.ndarray, turbidity: float, directions: np.ndarray) -> np.ndarray | None:
+    from mvintrinsic.synth.render import sky_radiance
+
     try:
-        import drjit as dr
-        import mitsuba as mi
-    except ImportError:
+        return sky_radiance(sun, directions, turbidity=turbidity)
+    except ImportError:  # Mitsuba absent: no true sky to compare with
         return None
-    mi.set_variant("scalar_rgb")
-    emitter = mi.load_dict({"type": "sunsky", "sun_direction": sun.tolist(), "turbidity": float(turbidity)})
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    out = np.zeros((len(directions), 3))
-    for i, d in enumerate(directions):
-        if d[2] > 0:
-            si.wi = mi.Vector3f(*(-d))
-            out[i] = np.array(emitter.eval(si))
-    return out
 
 
 def relative_rmse(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:

@@ -374,19 +374,12 @@ def test_config_is_validated(kwargs):
 def mitsuba_sky(sun: np.ndarray, turbidity: float, directions: np.ndarray) -> np.ndarray:
     """Radiance of Mitsuba's ``sunsky`` emitter toward ``directions`` (0 below the horizon)."""
     try:
-        import drjit as dr
-        import mitsuba as mi
+        import mitsuba  # noqa: F401
     except ImportError as exc:  # pragma: no cover - depends on the environment
         pytest.skip(f"mitsuba is not installed ({exc}); the Hosek-Wilkie comparison needs it")
-    mi.set_variant("scalar_rgb")
-    emitter = mi.load_dict({"type": "sunsky", "sun_direction": sun.tolist(), "turbidity": float(turbidity)})
-    si = dr.zeros(mi.SurfaceInteraction3f)
-    out = np.zeros((len(directions), 3))
-    for i, d in enumerate(directions):
-        if d[2] > 0:
-            si.wi = mi.Vector3f(*(-d))  # wi points away from the emitter: the radiance arriving along -d
-            out[i] = np.array(emitter.eval(si))
-    return out
+    from mvintrinsic.synth.render import sky_radiance
+
+    return sky_radiance(sun, directions, turbidity=turbidity)
 
 
 def relative_rmse(predicted: np.ndarray, observed: np.ndarray, weights: np.ndarray) -> float:

@@ -31,7 +31,16 @@ import numpy as np
 from ..camera import Camera
 from .types import SynthScene
 
-__all__ = ["MitsubaScene", "RenderConfig", "Renders", "import_mitsuba", "sun_radiance", "sun_vector", "write_ply_with_uvs"]
+__all__ = [
+    "MitsubaScene",
+    "RenderConfig",
+    "Renders",
+    "import_mitsuba",
+    "sky_radiance",
+    "sun_radiance",
+    "sun_vector",
+    "write_ply_with_uvs",
+]
 
 #: Solar disc aperture (full angle, degrees) used by Mitsuba's sunsky by default.
 SUN_APERTURE_DEG = 0.5358
@@ -269,3 +278,25 @@ def sun_radiance(sun_direction: Sequence[float], config: RenderConfig, *, size: 
     })
     image = np.array(mi.render(scene), dtype=np.float64)[..., :3]
     return image.reshape(-1, 3).mean(axis=0)
+
+
+def sky_radiance(sun_direction, directions: np.ndarray, *, turbidity: float = 3.0,
+                 ground_albedo: float = 0.3) -> np.ndarray:
+    """Radiance of Mitsuba's ``sunsky`` emitter (Hosek-Wilkie sky and the sun's disc) toward
+    world ``directions (N, 3)``, Z up; 0 below the horizon. (N, 3) float64.
+
+    This is the sky the synthetic scenes are rendered under, for checking a fitted sky model.
+    """
+    import drjit as dr
+
+    mi = import_mitsuba()
+    emitter = mi.load_dict({"type": "sunsky", "sun_direction": [float(v) for v in sun_direction],
+                            "turbidity": float(turbidity), "albedo": float(ground_albedo)})
+    si = dr.zeros(mi.SurfaceInteraction3f)
+    directions = np.asarray(directions, dtype=np.float64)
+    out = np.zeros((len(directions), 3))
+    for i, d in enumerate(directions):
+        if d[2] > 0:
+            si.wi = mi.Vector3f(*(-d))  # wi points away from the emitter: radiance arriving along -d
+            out[i] = np.array(emitter.eval(si))
+    return out

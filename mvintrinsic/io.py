@@ -107,6 +107,27 @@ def _srgb_lut(levels: int) -> np.ndarray:
     return lut
 
 
+def _read_stored(path: Path, missing: str) -> np.ndarray:
+    """Pixels of an image file as stored: (H, W, C) uint8, uint16 or float32 (any other type is
+    read as float32). Raises SceneError naming the file when it is missing, unreadable or cut."""
+    import OpenImageIO as oiio
+
+    if not path.is_file():
+        raise SceneError(path, missing)
+    inp = oiio.ImageInput.open(str(path))
+    if inp is None:
+        raise SceneError(path, f"unreadable image ({oiio.geterror().strip() or 'unknown format'})")
+    try:
+        spec = inp.spec()
+        fmt = {oiio.UINT8: "uint8", oiio.UINT16: "uint16"}.get(spec.format.basetype, "float")
+        data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
+        if data is None or inp.has_error:
+            raise SceneError(path, f"unreadable or truncated image ({inp.geterror().strip()})")
+    finally:
+        inp.close()
+    return np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
+
+
 def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:
     """Read an image file as linear RGB.
 
@@ -129,31 +150,15 @@ def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:
     SceneError
         If the file is missing, unreadable, truncated or has an unsupported channel count.
     """
-    import OpenImageIO as oiio
-
     path = Path(path)
-    if not path.is_file():
-        raise SceneError(path, "image file not found")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise SceneError(path, f"unreadable image ({oiio.geterror().strip() or 'unknown format'})")
-    try:
-        spec = inp.spec()
-        channels = spec.nchannels
-        if channels not in (1, 2, 3, 4):
-            raise SceneError(path, f"unsupported image with {channels} channels (need 1-4)")
-        base = spec.format.basetype
-        integer = base in (oiio.UINT8, oiio.UINT16)
-        fmt = {oiio.UINT8: "uint8", oiio.UINT16: "uint16"}.get(base, "float")
-        data = inp.read_image(0, 0, 0, channels, fmt)
-        if data is None or inp.has_error:
-            raise SceneError(path, f"unreadable or truncated image ({inp.geterror().strip()})")
-    finally:
-        inp.close()
-    data = np.asarray(data).reshape(spec.height, spec.width, channels)
-    if fmt == "uint8":
+    data = _read_stored(path, "image file not found")
+    channels = data.shape[2]
+    if channels not in (1, 2, 3, 4):
+        raise SceneError(path, f"unsupported image with {channels} channels (need 1-4)")
+    integer = data.dtype in (np.uint8, np.uint16)
+    if data.dtype == np.uint8:
         data = _srgb_lut(256)[data]
-    elif fmt == "uint16":
+    elif data.dtype == np.uint16:
         data = data.astype(np.float32) / np.float32(65535.0)
     data = data.astype(np.float32, copy=False)
     if channels <= 2:
@@ -811,24 +816,10 @@ def save_decomposition(
 
 
 def _read_raw(path: Path, channels: int) -> np.ndarray:
-    import OpenImageIO as oiio
-
-    if not path.is_file():
-        raise SceneError(path, "result file not found")
-    inp = oiio.ImageInput.open(str(path))
-    if inp is None:
-        raise SceneError(path, f"unreadable image ({oiio.geterror().strip()})")
-    try:
-        spec = inp.spec()
-        fmt = "uint8" if spec.format.basetype == oiio.UINT8 else "float"
-        data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
-        if data is None or inp.has_error:
-            raise SceneError(path, f"unreadable or truncated image ({inp.geterror().strip()})")
-    finally:
-        inp.close()
-    data = np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
-    if spec.nchannels != channels:
-        raise SceneError(path, f"expected {channels} channels, found {spec.nchannels}")
+    """A result layer as stored (float32, or uint8 for PNG labels), ``(H, W)`` for one channel."""
+    data = _read_stored(path, "result file not found")
+    if data.shape[2] != channels:
+        raise SceneError(path, f"expected {channels} channels, found {data.shape[2]}")
     return data[..., 0] if channels == 1 else data
 
 

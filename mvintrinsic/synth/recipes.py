@@ -99,6 +99,18 @@ class _Builder:
     def mark(self, name: str, point: Sequence[float]) -> None:
         self.markers[name] = np.array(point, dtype=np.float64)
 
+    def mark_all(self, markers: dict[str, Sequence[float]]) -> None:
+        for name, point in markers.items():
+            self.mark(name, point)
+
+    def add_tree(self, base: np.ndarray, bark: str, leaves: str, **shape: float) -> None:
+        """Trunk (solid), branches (thin) and leaves (foliage) of :func:`_tree`, with its markers."""
+        trunk, branches, foliage, markers = _tree(self.rng("tree"), base, **shape)
+        self.add("tree_trunk", trunk, bark, "solid")
+        self.add("tree_branches", branches, bark, "thin")
+        self.add("tree_leaves", foliage, leaves, "foliage")
+        self.mark_all(markers)
+
     def scene(self, path: ViewPath) -> SynthScene:
         return SynthScene(self.recipe, self.seed, self.meshes, self.materials, path, self.markers)
 
@@ -490,29 +502,21 @@ def courtyard(*, seed: int = 0, gloss: bool = False) -> SynthScene:
 
     # Tree in the lawn.
     tree_base = np.array([-3.4, 3.0, 0.0]) + [*layout.uniform(-0.4, 0.4, 2), 0.0]
-    trunk, branches, foliage, markers = _tree(b.rng("tree"), tree_base)
-    b.add("tree_trunk", trunk, bark, "solid")
-    b.add("tree_branches", branches, bark, "thin")
-    b.add("tree_leaves", foliage, leaves, "foliage")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.add_tree(tree_base, bark, leaves)
 
     # Thin structures: lamp pole and picket fence.
     pole, markers = _lamp_pole(np.array([1.5, -0.5, 0.0]) + [*layout.uniform(-0.3, 0.3, 2), 0.0])
     b.add("lamp_pole", pole, metal, "thin")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.mark_all(markers)
     fence, markers = _fence(-6.4, -0.4, -0.4)
     b.add("fence", fence, fence_wood, "thin")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.mark_all(markers)
 
     # Statue on its plinth.
     plinth, figure, markers = _statue(layout, np.array([4.0, 3.0, 0.0]) + [*layout.uniform(-0.5, 0.5, 2), 0.0])
     b.add("statue_plinth", plinth, trim, "solid")
     b.add("statue", figure, statue_stone, "solid")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.mark_all(markers)
 
     return b.scene(_path((0.0, -9.0, 1.7), (1.0, 0.0, 0.0), (0.0, 4.0, 3.2)))
 
@@ -617,8 +621,7 @@ def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
     b.add("car_body", body, car_paint, "solid")
     b.add("car_cabin", cabin, glass, "solid")
     b.add("car_wheels", wheels, tyre, "solid")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.mark_all(markers)
 
     # Pergola in front of facade B, aligned with it.
     posts, roof = _pergola(3.2, 2.4)
@@ -629,18 +632,12 @@ def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
 
     # Tree.
     tree_base = np.array([-1.8, 4.2, 0.0]) + [*layout.uniform(-0.4, 0.4, 2), 0.0]
-    trunk, branches, foliage, markers = _tree(b.rng("tree"), tree_base, crown_height=4.8)
-    b.add("tree_trunk", trunk, bark, "solid")
-    b.add("tree_branches", branches, bark, "thin")
-    b.add("tree_leaves", foliage, leaves, "foliage")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.add_tree(tree_base, bark, leaves, crown_height=4.8)
 
     # Lamp pole and bollards along the kerb.
     pole, markers = _lamp_pole(np.array([1.2, -1.5, 0.0]) + [*layout.uniform(-0.3, 0.3, 2), 0.0])
     b.add("lamp_pole", pole, metal, "thin")
-    for k, v in markers.items():
-        b.mark(k, v)
+    b.mark_all(markers)
     b.add("bollards", concat([_bollard((x, -5.5, 0.0)) for x in (-4.5, -3.0, 3.0, 4.5, 6.0)]), metal, "solid")
 
     return b.scene(_path((0.0, -10.0, 1.7), (1.0, 0.0, 0.0), (1.0, 5.0, 3.2)))

@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree
 from ._libusb import ensure_libusb
 from ._validation import describe
 from .camera import Camera
+from .image_model import clamped_cosine
 from .scene import Proxy, Scene, View
 from .skymodel import EnvironmentMap, HorizonPlane, SkyConfig, SkyModel, estimate_environment, horizon_plane
 
@@ -536,7 +537,7 @@ def sun_visibility(points: np.ndarray, normals: np.ndarray, sun_direction: np.nd
     """Proxy sun visibility ``~v`` (Sec. 4): 1 when the point faces the sun and a shadow ray
     toward it, started ``ray_offset`` metres off the surface, escapes the proxy; else 0. (N,)."""
     sun = np.asarray(sun_direction, dtype=np.float64)
-    facing = normals @ sun > 0
+    facing = clamped_cosine(normals, sun) > 0  # attached shadow where max(0, cos) = 0 (Sec. 3.1)
     out = np.zeros(len(points), dtype=np.float32)
     idx = np.flatnonzero(facing)
     origins = points[idx] + ray_offset * normals[idx]
@@ -558,7 +559,7 @@ def environment_shading(
     batch_rays: int = 1 << 21,
     progress: bool = False,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``S_sky`` and ``S_ind`` at points by hemisphere ray casting (paper Sec. 4).
+    """``S_sky`` and ``S_ind`` of Eq. (1) at points by hemisphere ray casting (paper Sec. 4).
 
     For each point, ``n_rays`` cosine-weighted stratified rays about its normal are cast against
     the proxy (points are processed in Morton order, a batch at a time, so neighbouring rays
@@ -799,7 +800,7 @@ def step1(
 
     start = time.perf_counter()
     visibility = sun_visibility(points, normals, scene.sun.direction, tracer, ray_offset=config.ray_offset)
-    cosine = np.maximum(normals @ scene.sun.direction, 0.0).astype(np.float32)
+    cosine = clamped_cosine(normals, scene.sun.direction).astype(np.float32)  # max(0, cos w_sun), Eq. (1)
     timings["sun_visibility"] = time.perf_counter() - start
 
     for array in (radiance, count, sky, indirect, visibility, cosine):

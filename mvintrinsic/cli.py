@@ -3,8 +3,11 @@
 Commands
 --------
 demo
-    Load the embedded demo scene (rendered by ``synth``, shipped with the package), print its
-    summary and write previews (tonemapped PNGs of the images and ground-truth layers).
+    Decompose the embedded demo scene (rendered by ``synth``, shipped with the package): print
+    its summary, L_sun and timings, write the result folder, a side-by-side PNG per view
+    (estimate above, ground truth below), ground-truth previews, and the scores against gt/.
+decompose SCENE OUT
+    Decompose a scene folder (Steps 1-2) and write the result folder of ``docs/formats.md``.
 info SCENE
     Load a scene folder (``docs/formats.md``), validate it and print a summary: views, cameras,
     image statistics, proxy, sun, and which ground-truth layers are present. ``--json`` prints
@@ -30,6 +33,7 @@ import numpy as np
 from ._version import __version__
 from .io import ResultFolderError, SceneError, load_scene
 from .scene import Scene
+from .sun_calibration import SunCalibrationError
 from .sun_position import azimuth_elevation
 
 __all__ = ["main", "scene_summary"]
@@ -125,18 +129,84 @@ def demo_scene_path() -> Path:
     return Path(str(files("mvintrinsic") / "data" / "demo"))
 
 
+def _print_decomposition(result, scene: Scene, calibration_note: str = "") -> None:
+    sun = result.lighting.sun_radiance
+    sky = result.lighting.sky
+    print(f"L_sun        {np.round(sun, 4).tolist()} (shading units){calibration_note}")
+    if sky is not None:
+        print(f"sky          {sky.model}, turbidity {sky.turbidity:.2f}, scale {np.round(sky.scale, 4).tolist()}")
+    step1 = sum(v for k, v in result.timings.items() if k.startswith("step1."))
+    others = ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items() if not k.startswith("step1."))
+    print(f"seconds      step1 {step1:.2f}, {others} ({len(scene.views)} views)")
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .preview import write_scene_previews
+    from .io import save_decomposition
+    from .pipeline import decompose
+    from .preview import write_decomposition_previews, write_scene_previews
 
     folder = demo_scene_path()
     scene = load_scene(folder)
     print(_format_summary(scene_summary(scene)))
     out = args.out.resolve()
     if folder.resolve() in (out, *out.parents):
-        raise ValueError(f"--out {out}: refusing to write previews inside the demo scene")
-    written = write_scene_previews(folder, out)
-    layers = sorted({p.parent.name for p in written})
-    print(f"previews     {len(written)} PNGs in {out}/ ({', '.join(layers)})")
+        raise ValueError(f"--out {out}: refusing to write inside the demo scene")
+    result = decompose(scene, progress=sys.stderr.isatty())
+    _print_decomposition(result, scene)
+    save_decomposition(result, out / "result", scene=scene, overwrite=args.overwrite)
+    compared = write_decomposition_previews(scene, result, out / "compare")
+    written = write_scene_previews(folder, out / "ground_truth")
+    from .evaluation import evaluate
+
+    scores = evaluate(folder, out / "result")["mean"]
+    print(f"result       {out / 'result'}/ (FORMAT.md result folder)")
+    print(f"compare      {len(compared)} side-by-side PNGs in {out / 'compare'}/ (input, reflectance, shading, "
+          f"visibility; estimate above, ground truth below)")
+    print(f"previews     {len(written)} ground-truth PNGs in {out / 'ground_truth'}/")
+    print(f"scores       LMSE reflectance {scores['lmse_reflectance']:.4f}, shading {scores['lmse_shading']:.4f}, "
+          f"shadow BER {scores['ber']:.3f} (mean over views, vs gt/)")
+    return 0
+
+
+def _read_config(path: Path | None):
+    from .pipeline import Config
+
+    if path is None:
+        return Config()
+    try:
+        text = path.read_bytes()
+    except OSError as exc:
+        raise ValueError(f"--config {path}: cannot read ({exc.strerror})") from None
+    try:
+        if path.suffix.lower() == ".toml":
+            import tomllib
+
+            data = tomllib.loads(text.decode())
+        else:
+            data = json.loads(text)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"--config {path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'} ({exc})") from None
+    try:
+        return Config.from_dict(data)
+    except ValueError as exc:
+        raise ValueError(f"--config {path}: {exc}") from None
+
+
+def _cmd_decompose(args: argparse.Namespace) -> int:
+    from .io import save_decomposition
+    from .pipeline import decompose
+
+    config = _read_config(args.config)
+    if args.allow_missing_sun:
+        from dataclasses import replace
+
+        config = replace(config, allow_missing_sun=True)
+    scene = load_scene(args.scene, max_size=args.max_size, views=args.views or None, progress=not args.quiet)
+    result = decompose(scene, config=config, progress=not args.quiet)
+    folder = save_decomposition(result, args.out, scene=scene, overwrite=args.overwrite)
+    if not args.quiet:
+        _print_decomposition(result, scene)
+    print(f"wrote {folder}: {len(result.layers)} views")
     return 0
 
 
@@ -211,9 +281,24 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(run=_cmd_info)
 
-    demo = commands.add_parser("demo", help="run on the embedded demo scene")
-    demo.add_argument("--out", type=Path, default=Path("mvintrinsic-demo"), help="folder for the previews")
+    demo = commands.add_parser("demo", help="decompose the embedded demo scene and score it against its ground truth")
+    demo.add_argument("--out", type=Path, default=Path("mvintrinsic-demo"),
+                      help="output folder: result/, compare/ and ground_truth/ (default mvintrinsic-demo)")
+    demo.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT/result")
     demo.set_defaults(run=_cmd_demo)
+
+    dec = commands.add_parser("decompose", help="decompose a scene folder into a result folder")
+    dec.add_argument("scene", type=Path, help="scene folder (images/, sparse/, proxy.ply, scene.json)")
+    dec.add_argument("out", type=Path, help="result folder to write (absent, empty, or a previous result)")
+    dec.add_argument("--config", type=Path, default=None,
+                     help="JSON or TOML file with (part of) the configuration, e.g. {\"sun\": {\"walk\": 20}}")
+    dec.add_argument("--max-size", type=int, default=None, help="downscale images to this longer side")
+    dec.add_argument("--views", nargs="+", default=None, metavar="STEM", help="decompose only these views")
+    dec.add_argument("--allow-missing-sun", action="store_true",
+                     help="if no light/shadow pair is found, use L_sun = 0 instead of failing")
+    dec.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT")
+    dec.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+    dec.set_defaults(run=_cmd_decompose)
 
     synth = commands.add_parser("synth", help="render a synthetic scene with ground truth (needs mitsuba)")
     synth.add_argument("recipe", help="scene recipe (courtyard, street)")
@@ -242,7 +327,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (SceneError, ResultFolderError, ValueError, FileExistsError, ImportError) as exc:
+    except (SceneError, ResultFolderError, SunCalibrationError, ValueError, FileExistsError, ImportError) as exc:
         print(f"mvintrinsic {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

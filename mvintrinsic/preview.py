@@ -1,4 +1,4 @@
-"""Previews: tonemapped 8-bit PNGs of linear images and ground-truth layers (edge layer)."""
+"""Previews: tonemapped 8-bit PNGs of linear images, ground-truth layers and decompositions (edge layer)."""
 
 from __future__ import annotations
 
@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 
 from .io import import_colour, read_image, write_image
+from .results import Decomposition, IntrinsicLayers
+from .scene import Scene
 
-__all__ = ["tonemap", "write_scene_previews"]
+__all__ = ["side_by_side", "tonemap", "write_decomposition_previews", "write_scene_previews"]
 
 
 def tonemap(image: np.ndarray, *, white: float | None = None, percentile: float = 99.0) -> np.ndarray:
@@ -74,4 +76,73 @@ def write_scene_previews(scene_folder: os.PathLike | str, out: os.PathLike | str
             if path.is_file():
                 mask = read_image(path)[0][..., 0] > 0.5
                 written.append(write_image(out / name / f"{stem}.png", np.where(mask, 255, 0), dtype="uint8"))
+    return written
+
+
+def _caption(tile: np.ndarray, text: str) -> np.ndarray:
+    """Write ``text`` in the top-left corner of an 8-bit RGB tile (white on a dark band)."""
+    import cv2
+
+    tile = np.ascontiguousarray(tile)
+    scale = max(0.35, tile.shape[0] / 500)
+    height = int(22 * scale) + 4
+    tile[:height] = (tile[:height] * 0.4).astype(np.uint8)
+    cv2.putText(tile, text, (4, height - 6), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return tile
+
+
+def side_by_side(image: np.ndarray, layers: IntrinsicLayers, *, truth: dict[str, np.ndarray] | None = None
+                 ) -> np.ndarray:
+    """One preview of a view's decomposition: input | reflectance | shading | sun visibility.
+
+    The image is shown at its 99th percentile, both shading rows at the 99th percentile of the
+    ground-truth shading (of the estimate without ground truth), reflectance with white = 1,
+    visibility in grey. With ``truth`` (keys ``reflectance``, ``shading``,
+    ``sun_visibility``; linear arrays) a second row shows the ground truth the same way.
+
+    Returns
+    -------
+    (H or 2H, 4W, 3) uint8
+    """
+    image = np.asarray(image, dtype=np.float64)
+    white = float(np.percentile(image[np.isfinite(image)], 99)) if np.isfinite(image).any() else 1.0
+    reference = layers.shading if truth is None else np.asarray(truth["shading"])
+    shading_white = float(np.percentile(reference[np.isfinite(reference)], 99)) if reference.size else 1.0
+
+    def row(reflectance, shading, visibility, label):
+        vis = np.repeat((np.clip(visibility, 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=2)
+        return np.concatenate([
+            _caption(tonemap(image, white=white), "input" if label == "estimate" else "ground truth"),
+            _caption(tonemap(reflectance, white=1.0), f"reflectance ({label})"),
+            _caption(tonemap(shading, white=shading_white), f"shading ({label})"),
+            _caption(vis, f"sun visibility ({label})"),
+        ], axis=1)
+
+    rows = [row(layers.reflectance, layers.shading, layers.visibility, "estimate")]
+    if truth is not None:
+        rows.append(row(truth["reflectance"], truth["shading"], truth["sun_visibility"], "truth"))
+    return np.concatenate(rows, axis=0)
+
+
+def write_decomposition_previews(scene: Scene, result: Decomposition, out: os.PathLike | str) -> list[Path]:
+    """Write :func:`side_by_side` PNGs of every view to ``out/<stem>.png``.
+
+    When the scene folder has ground truth (``gt/reflectance``, ``gt/shading``,
+    ``gt/sun_visibility``) for a view, its preview gets the ground-truth row.
+    """
+    out = Path(out)
+    written = []
+    gt = None if scene.source is None else Path(scene.source) / "gt"
+    for view in scene.views:
+        if view.stem not in result.layers:
+            continue
+        truth = None
+        if gt is not None and all((gt / n / f"{view.stem}.{e}").is_file() for n, e in
+                                  (("reflectance", "exr"), ("shading", "exr"), ("sun_visibility", "png"))):
+            truth = {n: read_image(gt / n / f"{view.stem}.exr")[0] for n in ("reflectance", "shading")}
+            truth["sun_visibility"] = read_image(gt / "sun_visibility" / f"{view.stem}.png")[0][..., 0]
+            if truth["reflectance"].shape[:2] != view.shape:
+                truth = None
+        tile = side_by_side(view.image, result.layers[view.stem], truth=truth)
+        written.append(write_image(out / f"{view.stem}.png", tile, dtype="uint8"))
     return written

@@ -5,8 +5,9 @@ from __future__ import annotations
 import subprocess
 import sys
 
-from mvintrinsic import load_scene
+from mvintrinsic import load_decomposition, load_scene
 from mvintrinsic.cli import demo_scene_path
+from mvintrinsic.io import read_image
 
 DEMO_MAX_BYTES = 10 * 1024 * 1024  # issue 3: the embedded demo is at most 10 MB
 
@@ -31,7 +32,14 @@ def test_demo_command_runs_without_mitsuba(tmp_path):
     )
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
-    assert "views" in run.stdout and "previews" in run.stdout
-    views = len(load_scene(demo_scene_path()).views)
+    for word in ("views", "L_sun", "compare", "previews", "scores"):
+        assert word in run.stdout, word
+    scene = load_scene(demo_scene_path())
+    views = len(scene.views)
+    result = load_decomposition(out / "result")
+    assert result.stems == tuple(v.stem for v in scene.views)
+    assert len(list((out / "compare").glob("*.png"))) == views
+    tile, _ = read_image(out / "compare" / f"{scene.views[0].stem}.png")
+    assert tile.shape[:2] == (2 * scene.views[0].shape[0], 4 * scene.views[0].shape[1])  # estimate over truth
     for name in ("image", "reflectance", "shading", "sun_shading", "env_shading", "sun_visibility"):
-        assert len(list((out / name).glob("*.png"))) == views, name
+        assert len(list((out / "ground_truth" / name).glob("*.png"))) == views, name

@@ -1,0 +1,246 @@
+"""The decomposition pipeline: the paper's steps composed, and their configuration.
+
+``decompose(scene)`` runs what is implemented so far: Step 1 (Sec. 4: environment map, sky model,
+``S_sky``, ``S_ind`` and ``~v`` at the proxy vertices) and Step 2 (Sec. 5: ``L_sun`` from
+light/shadow pairs), then the Step-2 layers of every view, ``R = I / (S_env + ~v S_sun)``
+(Eq. 2 with the proxy visibility). Every stage is also a public function, so a pipeline can be
+composed by hand::
+
+    from mvintrinsic import pipeline, raytrace
+    tracer = raytrace.Tracer(scene.proxy)
+    s1 = raytrace.step1(scene, tracer=tracer)
+    quantities = pipeline.carry_to_pixels(scene, s1, tracer)
+    calibration = pipeline.calibrate(scene, quantities)
+    layers = {v.stem: pipeline.step2_layers(v, quantities[v.stem], calibration.sun_radiance) for v in scene.views}
+
+Per-view work (``pixel_quantities``, ``find_sun_pairs``, ``step2_layers``) depends only on the
+view and the shared Step-1 result, so it can be fanned out over processes later.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .image_model import sun_shading, total_shading
+from .pixels import PixelQuantities, pixel_quantities
+from .raytrace import Step1Config, Step1Result, Tracer, step1
+from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
+from .scene import Scene, View
+from .skymodel import SkyConfig
+from .sun_calibration import SunCalibration, SunConfig, calibrate_sun, find_sun_pairs
+
+__all__ = ["Config", "calibrate", "carry_to_pixels", "decompose", "step2_layers"]
+
+logger = logging.getLogger(__name__)
+
+#: Shading below this fraction of the view's median total shading is raised to it in ``S_ind`` so
+#: that ``R = I / S_tot`` stays finite (a pixel the proxy says receives no light at all).
+SHADING_FLOOR = 1e-3
+
+
+@dataclass(frozen=True)
+class Config:
+    """Configuration of the whole pipeline: one dataclass per stage, the paper's values as defaults.
+
+    Parameters
+    ----------
+    step1 : Step1Config
+        Environment map, sky model and ray-traced shading (Sec. 4).
+    sun : SunConfig
+        Sun calibration (Sec. 5).
+    allow_missing_sun : bool
+        When no light/shadow pair survives: False raises
+        :class:`~mvintrinsic.sun_calibration.SunCalibrationError`; True uses ``L_sun = 0`` (all
+        light treated as environment light; see :func:`~mvintrinsic.sun_calibration.calibrate_sun`).
+    seed : int
+        Seeds every random choice (RANSAC, hemisphere sampling).
+    """
+
+    step1: Step1Config = field(default_factory=Step1Config)
+    sun: SunConfig = field(default_factory=SunConfig)
+    allow_missing_sun: bool = False
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.step1, Step1Config):
+            raise TypeError(f"step1 must be a Step1Config, got {type(self.step1).__name__}")
+        if not isinstance(self.sun, SunConfig):
+            raise TypeError(f"sun must be a SunConfig, got {type(self.sun).__name__}")
+        if not isinstance(self.allow_missing_sun, bool):
+            raise TypeError(f"allow_missing_sun must be a bool, got {self.allow_missing_sun!r}")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int):
+            raise TypeError(f"seed must be an int, got {self.seed!r}")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-compatible nested mapping (the ``config`` key of ``lighting.json``)."""
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Config:
+        """Build from a (possibly partial) nested mapping, e.g. a parsed JSON or TOML file.
+
+        Missing keys keep their defaults; an unknown key raises ``ValueError`` naming it.
+        """
+        return _from_dict(cls, data, "config")
+
+
+_NESTED = {"step1": Step1Config, "sun": SunConfig, "sky": SkyConfig}
+
+
+def _from_dict(kind: type, data: Mapping[str, Any], where: str) -> Any:
+    if not isinstance(data, Mapping):
+        raise ValueError(f"{where} must be a mapping, got {type(data).__name__}")
+    names = {f.name for f in dataclasses.fields(kind)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; known keys are {sorted(names)}")
+    values = {}
+    for key, value in data.items():
+        nested = _NESTED.get(key)
+        if nested is not None and isinstance(value, Mapping):
+            value = _from_dict(nested, value, f"{where}.{key}")
+        elif isinstance(value, list):
+            value = tuple(value)
+        values[key] = value
+    try:
+        return kind(**values)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{where}: {exc}") from None
+
+
+def carry_to_pixels(scene: Scene, step1_result: Step1Result, tracer: Tracer, *, progress: bool = False
+                    ) -> dict[str, PixelQuantities]:
+    """Step-1 quantities of every view, per pixel (:func:`mvintrinsic.pixels.pixel_quantities`)."""
+    from tqdm.auto import tqdm
+
+    return {view.stem: pixel_quantities(view, step1_result, tracer, sun_direction=scene.sun.direction)
+            for view in tqdm(scene.views, desc="pixels", unit="view", disable=not progress)}
+
+
+def calibrate(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config | None = None,
+              progress: bool = False) -> SunCalibration:
+    """Step 2 (Sec. 5): light/shadow pairs in every view, then ``L_sun`` (per-channel median)."""
+    from tqdm.auto import tqdm
+
+    config = config or Config()
+    pairs = [find_sun_pairs(view, quantities[view.stem], config=config.sun)
+             for view in tqdm(scene.views, desc="sun pairs", unit="view", disable=not progress)]
+    return calibrate_sun(pairs, allow_missing=config.allow_missing_sun)
+
+
+def step2_layers(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray) -> IntrinsicLayers:
+    """The Step-2 intrinsic layers of a view: ``R = I / (S_sky + S_ind + ~v S_sun)`` (Eqs. 2, 17).
+
+    ``v_sun`` is the proxy visibility ``~v`` carried to the pixels; the shadow labels threshold it
+    at 1/2. Sky and invalid pixels hold zeros and label 128. Where the total shading is below
+    :data:`SHADING_FLOOR` times the view's median, ``S_ind`` is raised so that it reaches that
+    floor (the reflectance stays finite and ``R * S_tot`` still reproduces the image).
+
+    Parameters
+    ----------
+    view : View
+    quantities : PixelQuantities
+        The view's per-pixel Step-1 quantities.
+    sun_radiance : (3,) array_like
+        ``L_sun``, shading units.
+
+    Returns
+    -------
+    IntrinsicLayers
+    """
+    if view.stem != quantities.stem or view.camera.shape != quantities.shape:
+        raise ValueError(f"quantities ({quantities.stem!r}) do not belong to view {view.stem!r}")
+    valid = quantities.valid
+    image = np.where(valid[..., None], np.asarray(view.image, dtype=np.float64), 0.0)
+    sun = sun_shading(sun_radiance, quantities.cosine)                                   # Eq. 3
+    sky = quantities.sky.astype(np.float64)
+    indirect = quantities.indirect.astype(np.float64)
+    visibility = quantities.visibility.astype(np.float64)
+    total = total_shading(sky, indirect, visibility, sun)                                # Eq. 17
+    if valid.any():
+        floor = SHADING_FLOOR * float(np.median(total[valid]))
+        indirect = indirect + np.where(valid[..., None], np.maximum(floor - total, 0.0), 0.0)
+        total = total_shading(sky, indirect, visibility, sun)
+    reflectance = np.divide(image, total, out=np.zeros_like(image), where=valid[..., None] & (total > 0))  # Eq. 2
+    labels = np.full(quantities.shape, SHADOW_LABELS["undecided"], dtype=np.uint8)
+    labels[valid & (visibility < 0.5)] = SHADOW_LABELS["shadow"]
+    labels[valid & (visibility >= 0.5)] = SHADOW_LABELS["lit"]
+    zero = ~valid[..., None]
+    return IntrinsicLayers(
+        stem=view.stem,
+        reflectance=reflectance.astype(np.float32),
+        sun_shading=np.where(zero, 0.0, sun).astype(np.float32),
+        sky_shading=np.where(zero, 0.0, sky).astype(np.float32),
+        indirect_shading=np.where(zero, 0.0, indirect).astype(np.float32),
+        visibility=np.where(valid, visibility, 0.0).astype(np.float32),
+        shadow_labels=labels,
+    )
+
+
+def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
+              progress: bool = False) -> Decomposition:
+    """Decompose every view of a scene into reflectance and shading layers (Steps 1-2).
+
+    Parameters
+    ----------
+    scene : Scene
+        Views, proxy, sun and up (:func:`mvintrinsic.io.load_scene`).
+    config : Config, optional
+        Defaults to ``Config()``, the paper's parameters.
+    tracer : Tracer, optional
+        A tracer already built over ``scene.proxy``.
+    progress : bool, optional
+        tqdm progress bars over the long stages and the views.
+
+    Returns
+    -------
+    Decomposition
+        Per-view :class:`~mvintrinsic.results.IntrinsicLayers`, the :class:`Lighting` (sun
+        radiance, fitted sky, horizon plane, environment map), seconds per stage
+        (``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, ``layers``) and ``config.to_dict()``.
+
+    Raises
+    ------
+    SunCalibrationError
+        No light/shadow pair survived and ``config.allow_missing_sun`` is False.
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a Scene, got {type(scene).__name__}")
+    config = config or Config()
+    if not isinstance(config, Config):
+        raise TypeError(f"config must be a Config, got {type(config).__name__}")
+    timings: dict[str, float] = {}
+
+    logger.info("step 1: environment map, sky model, S_sky, S_ind, ~v on %d proxy vertices", len(scene.proxy.vertices))
+    tracer = tracer if tracer is not None else Tracer(scene.proxy)
+    s1 = step1(scene, config=config.step1, tracer=tracer, rng=config.seed, progress=progress)
+    timings.update({f"step1.{k}": v for k, v in s1.timings.items()})
+
+    start = time.perf_counter()
+    quantities = carry_to_pixels(scene, s1, tracer, progress=progress)
+    timings["pixels"] = time.perf_counter() - start
+
+    logger.info("step 2: sun calibration over %d views", len(scene.views))
+    start = time.perf_counter()
+    calibration = calibrate(scene, quantities, config=config, progress=progress)
+    timings["sun_pairs"] = time.perf_counter() - start
+
+    start = time.perf_counter()
+    layers = {view.stem: step2_layers(view, quantities[view.stem], calibration.sun_radiance) for view in scene.views}
+    timings["layers"] = time.perf_counter() - start
+
+    sky = s1.sky_model
+    lighting = Lighting(
+        sun=scene.sun, sun_radiance=calibration.sun_radiance, up=scene.up,
+        sky=SkyParameters(model="preetham", turbidity=float(sky.turbidity), scale=np.asarray(sky.scale),
+                          residual=float(sky.residual)),
+        horizon_plane=s1.horizon.plane, envmap=s1.environment.radiance,
+    )
+    return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config.to_dict())

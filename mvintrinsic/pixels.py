@@ -1,0 +1,156 @@
+"""Step-1 quantities carried from the proxy vertices to the pixels of a view.
+
+Step 1 estimates ``S_sky``, ``S_ind`` and the proxy sun visibility ``~v`` at the vertices of the
+proxy (paper Sec. 4). Steps 2 and later work in image space, so every view needs them per pixel.
+This module does the simple, documented transfer used until Step 3's image-guided propagation
+(paper Sec. 6.2) takes over:
+
+* a pixel whose centre ray hits the proxy takes the barycentric interpolation of the hit
+  triangle's vertex values (one primary ray per pixel, Embree);
+* a valid pixel whose ray misses the proxy and whose direction is sky in the environment map is
+  sky: it carries no shading;
+* a valid pixel whose ray misses the proxy but does not see the sky (geometry the proxy lost,
+  typically foliage) takes the values of the nearest covered pixel (Euclidean distance in the
+  image), flagged in :attr:`PixelQuantities.filled`.
+
+The sun cosine is recomputed per pixel from the interpolated, renormalised vertex normal, so it is
+``max(0, n . w_sun)`` of a smooth normal rather than an interpolated clamp.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import ndimage
+
+from .image_model import clamped_cosine
+from .raytrace import Step1Result, Tracer
+from .scene import View
+
+__all__ = ["PixelQuantities", "pixel_quantities"]
+
+
+@dataclass(frozen=True, eq=False)
+class PixelQuantities:
+    """Step-1 quantities of one view, per pixel (``H x W`` of the view's image).
+
+    Parameters
+    ----------
+    stem : str
+        View name.
+    sky, indirect : (H, W, 3) float32
+        ``S_sky`` and ``S_ind`` in shading units; 0 on sky and invalid pixels.
+    visibility : (H, W) float32
+        Proxy sun visibility ``~v`` in [0, 1] (fractional where a pixel's triangle straddles a
+        shadow edge); 1 on sky and invalid pixels.
+    cosine : (H, W) float32
+        ``max(0, cos omega_sun)`` with the interpolated vertex normal; 0 on sky and invalid pixels.
+    normals : (H, W, 3) float32
+        Unit world-frame normal (interpolated vertex normals); 0 on sky and invalid pixels.
+    depth : (H, W) float32
+        Distance (metres) along the pixel's centre ray to the proxy; ``inf`` where it misses.
+    sky_mask : (H, W) bool
+        Valid pixels that see the sky (ray misses the proxy toward a sky texel).
+    filled : (H, W) bool
+        Valid, non-sky pixels the proxy does not cover; their values come from the nearest covered
+        pixel.
+    valid : (H, W) bool
+        Pixels with an estimate: the view's valid pixels minus the sky.
+    """
+
+    stem: str
+    sky: np.ndarray
+    indirect: np.ndarray
+    visibility: np.ndarray
+    cosine: np.ndarray
+    normals: np.ndarray
+    depth: np.ndarray
+    sky_mask: np.ndarray
+    filled: np.ndarray
+    valid: np.ndarray
+
+    @property
+    def env(self) -> np.ndarray:
+        """``S_env = S_sky + S_ind`` (Eq. 3), (H, W, 3) float32."""
+        return self.sky + self.indirect
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(H, W)``."""
+        return self.visibility.shape
+
+    def __repr__(self) -> str:
+        h, w = self.shape
+        return (f"PixelQuantities({self.stem!r}, {w}x{h}, valid={int(self.valid.sum())}, "
+                f"sky={int(self.sky_mask.sum())}, filled={int(self.filled.sum())})")
+
+
+def pixel_quantities(view: View, step1_result: Step1Result, tracer: Tracer, *, sun_direction: np.ndarray) -> PixelQuantities:
+    """Carry Step 1's per-vertex ``S_sky``, ``S_ind``, ``~v`` and normals into a view.
+
+    Parameters
+    ----------
+    view : View
+        The view (its camera and valid-pixel mask are used; its pixels are not).
+    step1_result : Step1Result
+        Per-vertex quantities of the proxy ``tracer`` was built on.
+    tracer : Tracer
+        Ray caster over the same proxy.
+    sun_direction : (3,) array_like
+        Unit world vector toward the sun.
+
+    Returns
+    -------
+    PixelQuantities
+
+    Raises
+    ------
+    ValueError
+        If ``step1_result`` does not describe ``tracer``'s proxy.
+    """
+    n_vertices = len(tracer.proxy.vertices)
+    if len(step1_result.shading.visibility) != n_vertices:
+        raise ValueError(f"step1_result has {len(step1_result.shading.visibility)} points but the tracer's proxy has "
+                         f"{n_vertices} vertices")
+    camera = view.camera
+    h, w = camera.shape
+    rays = camera.pixel_rays()
+    hits = tracer.intersect(camera.center, rays)
+    shading = step1_result.shading
+    # One interpolation for all per-vertex quantities: S_sky (3), S_ind (3), ~v (1), normal (3).
+    stacked = np.concatenate([shading.sky, shading.indirect, shading.visibility[:, None], step1_result.normals], axis=1)
+    values = tracer.interpolate(stacked, hits).reshape(h, w, 10)
+    covered = hits.hit.reshape(h, w)
+    depth = hits.t.reshape(h, w).astype(np.float32)
+
+    uncovered = view.mask & ~covered
+    sky_mask = np.zeros((h, w), dtype=bool)
+    if uncovered.any():
+        sky_mask[uncovered] = step1_result.environment.is_sky(rays.reshape(h, w, 3)[uncovered])
+    filled = uncovered & ~sky_mask
+    valid = view.mask & ~sky_mask
+    if filled.any():
+        if not covered.any():
+            raise ValueError(f"view {view.stem!r}: no pixel sees the proxy, nothing to carry into the view")
+        _, (rows, cols) = ndimage.distance_transform_edt(~covered, return_indices=True)
+        values[filled] = values[rows[filled], cols[filled]]
+
+    values[~valid] = 0.0
+    normals = values[..., 7:10]
+    length = np.linalg.norm(normals, axis=-1, keepdims=True)
+    normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
+    cosine = np.where(valid, clamped_cosine(normals, sun_direction), 0.0)
+    visibility = np.where(valid, np.clip(values[..., 6], 0.0, 1.0), 1.0)
+    return PixelQuantities(
+        stem=view.stem,
+        sky=values[..., 0:3].astype(np.float32),
+        indirect=values[..., 3:6].astype(np.float32),
+        visibility=visibility.astype(np.float32),
+        cosine=cosine.astype(np.float32),
+        normals=normals.astype(np.float32),
+        depth=depth,
+        sky_mask=sky_mask,
+        filled=filled,
+        valid=valid,
+    )

@@ -1,0 +1,169 @@
+"""The Steps 1-2 pipeline: configuration, per-pixel quantities, decompose(), and the decompose CLI."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from mvintrinsic import Config, Scene, View, decompose, load_decomposition, load_scene
+from mvintrinsic.cli import demo_scene_path, main
+from mvintrinsic.pipeline import carry_to_pixels
+from mvintrinsic.raytrace import Step1Config, Tracer, depth_map, step1
+from mvintrinsic.sun_calibration import SunCalibrationError, SunConfig
+
+RECONSTRUCTION_TOL = 1e-4  # issue 5: reflectance * shading == image on valid pixels
+
+
+@pytest.fixture(scope="module")
+def demo_scene():
+    return load_scene(demo_scene_path())
+
+
+@pytest.fixture(scope="module")
+def demo_result(demo_scene):
+    return decompose(demo_scene)
+
+
+def test_config_round_trips_and_reads_partial_mappings():
+    config = Config()
+    assert Config.from_dict(json.loads(json.dumps(config.to_dict()))) == config
+    partial = Config.from_dict({"sun": {"walk": 20}, "step1": {"n_rays": 32, "sky": {"envmap_height": 32}}})
+    assert partial.sun == replace(SunConfig(), walk=20)
+    assert partial.step1.n_rays == 32 and partial.step1.sky.envmap_height == 32
+    assert partial.step1.subsample == Step1Config().subsample
+
+
+@pytest.mark.parametrize("data, match", [
+    ({"sunn": {}}, r"config: unknown key\(s\) \['sunn'\]"),
+    ({"sun": {"walkk": 3}}, r"config\.sun: unknown key\(s\) \['walkk'\]"),
+    ({"sun": {"walk": 0}}, r"config\.sun: walk must be"),
+    ({"sun": 3}, r"config: sun must be a SunConfig"),
+])
+def test_config_errors_name_the_key(data, match):
+    with pytest.raises(ValueError, match=match):
+        Config.from_dict(data)
+
+
+def test_decompose_reproduces_every_image(demo_scene, demo_result):
+    assert demo_result.stems == tuple(v.stem for v in demo_scene.views)
+    for view in demo_scene.views:
+        layers = demo_result.layers[view.stem]
+        for name in ("reflectance", "sun_shading", "sky_shading", "indirect_shading", "visibility"):
+            assert np.isfinite(getattr(layers, name)).all(), name
+        estimated = layers.shadow_labels != 128
+        assert estimated.mean() > 0.5
+        difference = np.abs(layers.reconstruct()[estimated] - view.image[estimated])
+        assert difference.max() <= RECONSTRUCTION_TOL * max(1.0, float(view.image[estimated].max()))
+        assert (layers.reflectance[~estimated] == 0).all()
+
+
+def test_decompose_records_lighting_timings_and_config(demo_result):
+    lighting = demo_result.lighting
+    assert (lighting.sun_radiance > 0).all()
+    assert lighting.sky.model == "preetham" and lighting.envmap is not None
+    for stage in ("step1.environment_shading", "step1.vertex_radiance", "pixels", "sun_pairs", "layers"):
+        assert stage in demo_result.timings
+    assert Config.from_dict(demo_result.config) == Config()
+
+
+def test_pixel_quantities_split_sky_covered_and_filled(demo_scene):
+    tracer = Tracer(demo_scene.proxy)
+    s1 = step1(demo_scene, tracer=tracer, rng=0)
+    quantities = carry_to_pixels(demo_scene, s1, tracer)
+    for view in demo_scene.views:
+        q = quantities[view.stem]
+        covered = np.isfinite(q.depth)
+        assert not (q.sky_mask & covered).any() and not (q.filled & covered).any()
+        np.testing.assert_array_equal(q.valid, view.mask & ~q.sky_mask)
+        assert q.sky_mask.mean() > 0.05  # the demo's views all show sky
+        assert np.isfinite(q.sky).all() and (q.sky[q.valid] > 0).any()
+        cos = np.einsum("hwc,c->hw", q.normals, demo_scene.sun.direction)
+        np.testing.assert_allclose(q.cosine[q.valid], np.maximum(cos[q.valid], 0), atol=1e-6)
+
+
+def flat_scene(scene: Scene) -> Scene:
+    """The scene with every pixel that sees the proxy set to one grey: no shadow edge anywhere."""
+    tracer = Tracer(scene.proxy)
+    views = []
+    for v in scene.views:
+        covered = np.isfinite(depth_map(v.camera, tracer))
+        image = np.where(covered[..., None], np.float32(0.2), v.image).astype(np.float32)
+        views.append(View(v.stem, image, v.camera, v.mask))
+    return Scene(views, scene.proxy, scene.sun, scene.up)
+
+
+def test_no_shadow_boundary_fails_loudly_or_falls_back(demo_scene):
+    scene = flat_scene(demo_scene)
+    with pytest.raises(SunCalibrationError, match="allow_missing_sun=True"):
+        decompose(scene)
+    with pytest.warns(RuntimeWarning, match="L_sun = 0"):
+        result = decompose(scene, config=Config(allow_missing_sun=True))
+    assert (result.lighting.sun_radiance == 0).all()
+    for view in scene.views:
+        layers = result.layers[view.stem]
+        assert np.isfinite(layers.reflectance).all() and np.isfinite(layers.shading).all()
+
+
+def test_cli_decompose_writes_a_result_folder(tmp_path):
+    config = tmp_path / "config.json"
+    config.write_text(json.dumps({"sun": {"walk": 25}}))
+    out = tmp_path / "result"
+    code = main(["decompose", str(demo_scene_path()), str(out), "--views", "view_004", "view_005",
+                 "--config", str(config), "--quiet"])
+    assert code == 0
+    result = load_decomposition(out)
+    assert result.stems == ("view_004", "view_005")
+    assert result.layers["view_004"].shape == (180, 240)
+    assert result.config["sun"]["walk"] == 25
+    saved = json.loads((out / "lighting.json").read_text())
+    assert saved["sun_radiance"] == pytest.approx(result.lighting.sun_radiance.tolist())
+
+
+def test_cli_decompose_max_size_and_missing_sun(tmp_path, capsys):
+    out = tmp_path / "small"
+    args = ["decompose", str(demo_scene_path()), str(out), "--views", "view_001", "--max-size", "160", "--quiet"]
+    assert main(args) == 2  # at 160 px this one view has no surviving light/shadow pair
+    assert "allow_missing_sun=True" in capsys.readouterr().err and not out.exists()
+    with pytest.warns(RuntimeWarning, match="L_sun = 0"):
+        assert main([*args, "--allow-missing-sun"]) == 0
+    result = load_decomposition(out)
+    assert result.layers["view_001"].shape == (120, 160)
+    assert (result.lighting.sun_radiance == 0).all()
+
+
+@pytest.mark.parametrize("content, suffix, message", [
+    ("{not json", ".json", "not valid JSON"),
+    ("sun = {walkk = 3}", ".toml", r"unknown key\(s\) \['walkk'\]"),
+])
+def test_cli_decompose_names_a_bad_config_file(tmp_path, capsys, content, suffix, message):
+    config = tmp_path / f"config{suffix}"
+    config.write_text(content)
+    code = main(["decompose", str(demo_scene_path()), str(tmp_path / "out"), "--config", str(config), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err
+    assert str(config) in err
+    assert re.search(message, err)
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_decompose_on_dev_courtyard(dev_courtyard, tmp_path):
+    """Issue 5: ``mvintrinsic decompose`` on data we did not write; R * S == I on valid pixels."""
+    out = tmp_path / "dev"
+    run = subprocess.run([sys.executable, "-m", "mvintrinsic.cli", "decompose", str(dev_courtyard), str(out), "--quiet"],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    result = load_decomposition(out)
+    scene = load_scene(dev_courtyard)
+    assert result.stems == tuple(v.stem for v in scene.views)
+    for view in scene.views:
+        layers = result.layers[view.stem]
+        estimated = (layers.shadow_labels != 128) & view.mask
+        assert estimated.mean() > 0.5
+        difference = np.abs(layers.reconstruct()[estimated] - view.image[estimated])
+        assert difference.max() <= RECONSTRUCTION_TOL * max(1.0, float(view.image[estimated].max()))

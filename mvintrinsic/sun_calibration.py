@@ -96,6 +96,10 @@ class SunConfig:
         the edge detection (0: none, as OpenCV's Canny). Smoothing lets more pairs survive on
         noisy MVS proxies but also lets pairs cross small recesses: on the clean demo 1.5 px
         turned 57% true pairs into 16% (``docs/step2.md``).
+    pick : {"extreme", "median"}
+        Which of the similar-chromaticity candidates of a walk form the pair: the brightest lit
+        and darkest shadowed (the paper, away from the penumbra) or the median-luminance ones
+        (less biased on textured materials; ``docs/step2.md`` compares them).
     min_cosine : float
         Lit pixels with ``cos omega_sun`` below this are not used (Eq. 5 divides by it).
     smoothing : int
@@ -114,6 +118,7 @@ class SunConfig:
     min_cosine: float = 0.1
     smoothing: int = 5
     edge_sigma: float = 0.0
+    pick: str = "extreme"
 
     def __post_init__(self) -> None:
         for name, least in (("n_clusters", 2), ("walk", 1), ("boundary_step", 1), ("smoothing", 1)):
@@ -123,6 +128,8 @@ class SunConfig:
         for name in ("chroma_tolerance", "depth_edge", "normal_edge"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.pick not in ("extreme", "median"):
+            raise ValueError(f"pick must be 'extreme' or 'median', got {self.pick!r}")
         if not self.edge_sigma >= 0:
             raise ValueError(f"edge_sigma must be >= 0 pixels, got {self.edge_sigma!r}")
         if not 0 <= self.min_cosine < 1:
@@ -367,6 +374,15 @@ def _region_mean(image: np.ndarray, regions: Sequence[np.ndarray], size: int) ->
     return out
 
 
+def _pick(scores: np.ndarray, how: str) -> np.ndarray:
+    """Per row, the index of the smallest finite score (``"extreme"``) or of the median one."""
+    if how == "extreme":
+        return np.argmin(scores, axis=1)
+    order = np.argsort(scores, axis=1, kind="stable")
+    count = np.isfinite(scores).sum(axis=1)
+    return order[np.arange(len(scores)), np.maximum(count - 1, 0) // 2]
+
+
 def find_sun_pairs(view: View, quantities: PixelQuantities, *, config: SunConfig | None = None) -> SunPairs:
     """Light/shadow pairs of equal reflectance across the proxy shadow boundary of one view.
 
@@ -429,11 +445,12 @@ def find_sun_pairs(view: View, quantities: PixelQuantities, *, config: SunConfig
     has_pair = similar.any(axis=(1, 2))
     rejected["no_similar_chromaticity"] = int((has_candidates & ~has_pair).sum())
     keep = np.flatnonzero(has_pair)
-    # Brightest lit pixel with a similar partner, then its darkest similar shadowed partner.
-    lit_score = np.where(similar[keep].any(axis=2), lit_lum[keep], -np.inf)
-    i_lit = np.argmax(lit_score, axis=1)
+    # Brightest lit pixel with a similar partner, then its darkest similar shadowed partner (the
+    # paper), or the median ones (config.pick == "median").
+    lit_score = np.where(similar[keep].any(axis=2), -lit_lum[keep], np.inf)
+    i_lit = _pick(lit_score, config.pick)
     partners = similar[keep, i_lit]
-    i_sh = np.argmin(np.where(partners, sh_lum[keep], np.inf), axis=1)
+    i_sh = _pick(np.where(partners, sh_lum[keep], np.inf), config.pick)
 
     # Reject when the segment from the shadowed to the lit pixel crosses a proxy discontinuity.
     edges = discontinuity_edges(quantities, config=config)

@@ -90,6 +90,13 @@ def test_pairs_of_one_material_give_the_exact_sun_radiance():
     assert sum(pairs.rejected.values()) + len(pairs) == pairs.n_samples
 
 
+def test_median_pick_is_exact_on_one_material_too():
+    view, q = make_view([0.5, 0.45, 0.4])
+    pairs = find_sun_pairs(view, q, config=SunConfig(pick="median"))
+    assert len(pairs) >= 10
+    np.testing.assert_allclose(pairs.estimates, np.broadcast_to(L_SUN, pairs.estimates.shape), rtol=1e-5)
+
+
 def test_smoothing_removes_the_bias_of_picking_noisy_extremes():
     view, q = make_view([0.5, 0.45, 0.4], noise=0.05, seed=3)
     raw = calibrate_sun([find_sun_pairs(view, q, config=SunConfig(smoothing=1))]).sun_radiance
@@ -143,7 +150,7 @@ def test_median_is_per_channel_over_all_views():
 
 
 @pytest.mark.parametrize("bad", [{"n_clusters": 1}, {"walk": 0}, {"chroma_tolerance": 0}, {"min_cosine": 1.0},
-                                 {"smoothing": 0}, {"boundary_step": 2.5}])
+                                 {"smoothing": 0}, {"boundary_step": 2.5}, {"pick": "max"}, {"edge_sigma": -1.0}])
 def test_config_validation_names_the_field(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         SunConfig(**bad)

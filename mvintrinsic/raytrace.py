@@ -661,8 +661,8 @@ def subdivide(proxy: Proxy, *, max_edge: float, center: np.ndarray | None = None
 
     Step 1 carries its quantities on vertices: a mesh whose triangles are metres wide (a CAD
     model, the exact geometry of a synthetic scene) interpolates shading and visibility across
-    them. Each pass splits every triangle whose longest edge exceeds ``max_edge`` and whose
-    centroid lies within ``radius`` of ``center`` into four at its edge midpoints; midpoint
+    them. Each pass splits every triangle whose longest edge exceeds ``max_edge`` and which comes
+    within ``radius`` of ``center`` (its bounding sphere does) into four at its edge midpoints; midpoint
     normals are the normalised mean of the edge's end normals. A split triangle next to an
     unsplit one leaves a T-junction: harmless for ray casting and interpolation here.
 
@@ -697,7 +697,12 @@ def subdivide(proxy: Proxy, *, max_edge: float, center: np.ndarray | None = None
                           np.linalg.norm(a - c, axis=1)], axis=0)
         split = longest > max_edge
         if center is not None:
-            split &= np.linalg.norm((a + b + c) / 3.0 - center, axis=1) < radius
+            # The triangle's bounding sphere (about its centroid) must reach into the ball: a
+            # centroid test alone never splits a ground triangle hundreds of metres wide whose
+            # centroid lies far away but which passes under the cameras.
+            centroid = (a + b + c) / 3.0
+            bound = np.max([np.linalg.norm(v - centroid, axis=1) for v in (a, b, c)], axis=0)
+            split &= np.linalg.norm(centroid - center, axis=1) - bound < radius
         if not split.any():
             break
         parts = triangles[split]

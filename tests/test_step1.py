@@ -269,3 +269,16 @@ def test_subdivide_keeps_the_surface_and_bounds_edges():
     assert len(box.triangles) < len(local.triangles) < len(fine.triangles)
     with pytest.raises(ValueError, match="point cloud"):
         subdivide(Proxy(box.vertices, box.normals), max_edge=0.3)
+
+
+def test_subdivide_reaches_a_huge_triangle_whose_centroid_is_far():
+    """A ground triangle 600 m wide passing under the centre is refined there (not only near its centroid)."""
+    big = mesh_proxy([[-20.0, -20.0, 0.0], [600.0, -20.0, 0.0], [-20.0, 600.0, 0.0]], np.array([[0, 1, 2]]))
+    assert np.linalg.norm(big.vertices.mean(axis=0)) > 150  # the centroid is far outside the 5 m ball
+    fine = subdivide(big, max_edge=0.5, center=[0.0, 0.0, 0.0], radius=5.0)
+    v, t = fine.vertices, fine.triangles
+    centroids = v[t].mean(axis=1)
+    near = np.linalg.norm(centroids, axis=1) < 5.0
+    edges = np.max([np.linalg.norm(v[t[:, i]] - v[t[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=0)
+    assert near.sum() > 100 and edges[near].max() <= 0.5
+    assert len(t) < 20000  # far parts stay coarse

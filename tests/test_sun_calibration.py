@@ -150,7 +150,7 @@ def test_median_is_per_channel_over_all_views():
 
 
 @pytest.mark.parametrize("bad", [{"n_clusters": 1}, {"walk": 0}, {"chroma_tolerance": 0}, {"min_cosine": 1.0},
-                                 {"smoothing": 0}, {"boundary_step": 2.5}, {"pick": "max"}, {"edge_sigma": -1.0}])
+                                 {"smoothing": 0}, {"boundary_step": 2.5}, {"pick": "max"}, {"normal_sigma": -1.0}])
 def test_config_validation_names_the_field(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         SunConfig(**bad)

@@ -7,7 +7,7 @@ demo
     its summary, L_sun and timings, write the result folder, a side-by-side PNG per view
     (estimate above, ground truth below), ground-truth previews, and the scores against gt/.
 decompose SCENE OUT
-    Decompose a scene folder (Steps 1-2) and write the result folder of ``docs/formats.md``.
+    Decompose a scene folder (Steps 1-3) and write the result folder of ``docs/formats.md``.
 info SCENE
     Load a scene folder (``docs/formats.md``), validate it and print a summary: views, cameras,
     image statistics, proxy, sun, and which ground-truth layers are present. ``--json`` prints
@@ -161,7 +161,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     scores = evaluate(folder, out / "result")["mean"]
     print(f"result       {out / 'result'}/ (FORMAT.md result folder)")
     print(f"compare      {len(compared)} side-by-side PNGs in {out / 'compare'}/ (input, reflectance, shading, "
-          f"visibility; estimate above, ground truth below)")
+          f"visibility, shadow labels; estimate above, ground truth below)")
     print(f"previews     {len(written)} ground-truth PNGs in {out / 'ground_truth'}/")
     print(f"scores       LMSE reflectance {scores['lmse_reflectance']:.4f}, shading {scores['lmse_shading']:.4f}, "
           f"shadow BER {scores['ber']:.3f} (mean over views, vs gt/)")

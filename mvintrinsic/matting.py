@@ -109,6 +109,7 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
+import os
 import time
 from dataclasses import dataclass
 
@@ -386,6 +387,20 @@ def guide_image(image: np.ndarray, *, mask: np.ndarray | None = None, white_perc
     return np.ascontiguousarray(np.minimum(rgb / (white if white > 0 else 1.0), 1.0), dtype=np.float64)
 
 
+def _import_numba():
+    """Import numba with a threading layer that does not clash with open3d's bundled TBB.
+
+    open3d loads its own libtbb (interface 12050); numba's default threading-layer probe then finds
+    a TBB it refuses and emits a ``NumbaWarning`` on the first parallel kernel. Unless the user
+    chose a layer (``NUMBA_THREADING_LAYER``), take the always-available ``workqueue`` layer.
+    """
+    import numba
+
+    if numba.config.THREADING_LAYER == "default" and "NUMBA_THREADING_LAYER" not in os.environ:
+        numba.config.THREADING_LAYER = "workqueue"
+    return numba
+
+
 class _GuidedLaplacian:
     """The closed-form matting Laplacian of one guide image, built once, restricted on demand.
 
@@ -396,6 +411,7 @@ class _GuidedLaplacian:
     """
 
     def __init__(self, guide: np.ndarray, config: MattingConfig) -> None:
+        _import_numba()
         from pymatting.laplacian.cf_laplacian import cf_laplacian  # lazy: numba compiles on first import
 
         self._cf = cf_laplacian
@@ -474,14 +490,14 @@ _COMPILED: dict[str, object] = {}
 def _block_substitution():
     """:func:`_cholesky_solve_block` compiled by numba (cached on disk, like pymatting's kernels)."""
     if "solve" not in _COMPILED:
-        import numba
-
+        numba = _import_numba()
         _COMPILED["solve"] = numba.njit(cache=True, nogil=True)(_cholesky_solve_block)
     return _COMPILED["solve"]
 
 
 def _preconditioner(matrix: sp.csr_matrix, config: MattingConfig):
     """``M^-1`` of pymatting's thresholded incomplete Cholesky factorisation ``M = L L^T`` of ``matrix``."""
+    _import_numba()
     from pymatting.preconditioner.ichol import ichol
 
     # ichol prints a "PERFORMANCE WARNING" to stdout when it needs a larger shift; route it to the

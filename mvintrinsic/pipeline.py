@@ -1,9 +1,10 @@
 """The decomposition pipeline: the paper's steps composed, and their configuration.
 
 ``decompose(scene)`` runs what is implemented so far: Step 1 (Sec. 4: environment map, sky model,
-``S_sky``, ``S_ind`` and ``~v`` at the proxy vertices) and Step 2 (Sec. 5: ``L_sun`` from
-light/shadow pairs), then the Step-2 layers of every view, ``R = I / (S_env + ~v S_sun)``
-(Eq. 2 with the proxy visibility). Every stage is also a public function, so a pipeline can be
+``S_sky``, ``S_ind`` and ``~v`` at the proxy vertices), Step 2 (Sec. 5: ``L_sun`` from
+light/shadow pairs) and Step 3 (Sec. 6: per view, a colour segmentation, the shadow-labelling
+MRF of Eq. 7 and the per-pixel layers by matting, Eq. 17). ``Config(steps=2)`` stops after Step 2
+with ``R = I / (S_env + ~v S_sun)`` (Eq. 2 with the proxy visibility). Every stage is also a public function, so a pipeline can be
 composed by hand::
 
     from mvintrinsic import pipeline, raytrace
@@ -12,9 +13,10 @@ composed by hand::
     quantities = pipeline.carry_to_pixels(scene, s1, tracer)
     calibration = pipeline.calibrate(scene, quantities)
     layers = {v.stem: pipeline.step2_layers(v, quantities[v.stem], calibration.sun_radiance) for v in scene.views}
+    step3 = pipeline.step3_view(scene.views[0], quantities[scene.views[0].stem], calibration.sun_radiance)
 
-Per-view work (``pixel_quantities``, ``find_sun_pairs``, ``step2_layers``) depends only on the
-view and the shared Step-1 result, so it can be fanned out over processes later.
+Per-view work (``pixel_quantities``, ``find_sun_pairs``, ``step2_layers``, ``step3_view``)
+depends only on the view and the shared Step-1 result, so it can be fanned out over processes.
 """
 
 from __future__ import annotations
@@ -29,14 +31,17 @@ from typing import Any
 import numpy as np
 
 from .image_model import sun_shading, total_shading
+from .matting import MattingConfig, intrinsic_layers
 from .pixels import PixelQuantities, pixel_quantities
 from .raytrace import Step1Config, Step1Result, Tracer, step1
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from .scene import Scene, View
+from .segmentation import Segmentation, SegmentationConfig, segment
+from .shadow_mrf import ShadowConfig, ShadowLabels, label_shadows
 from .skymodel import SkyConfig
 from .sun_calibration import SunCalibration, SunConfig, calibrate_sun, find_sun_pairs
 
-__all__ = ["Config", "calibrate", "carry_to_pixels", "decompose", "step2_layers"]
+__all__ = ["Config", "Step3View", "calibrate", "carry_to_pixels", "decompose", "step2_layers", "step3_view"]
 
 logger = logging.getLogger(__name__)
 
@@ -55,6 +60,14 @@ class Config:
         Environment map, sky model and ray-traced shading (Sec. 4).
     sun : SunConfig
         Sun calibration (Sec. 5).
+    segmentation : SegmentationConfig
+        Colour over-segmentation of each view (Sec. 6.1).
+    shadow : ShadowConfig
+        Shadow-labelling MRF (Sec. 6.1, Eqs. 6-16).
+    matting : MattingConfig
+        Per-pixel visibility and shading (Sec. 6.2).
+    steps : {2, 3}
+        Last step run: 2 gives the Step-2 layers (proxy visibility), 3 (default) the Step-3 layers.
     allow_missing_sun : bool
         When no light/shadow pair survives: False raises
         :class:`~mvintrinsic.sun_calibration.SunCalibrationError`; True uses ``L_sun = 0`` (all
@@ -65,14 +78,22 @@ class Config:
 
     step1: Step1Config = field(default_factory=Step1Config)
     sun: SunConfig = field(default_factory=SunConfig)
+    segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
+    shadow: ShadowConfig = field(default_factory=ShadowConfig)
+    matting: MattingConfig = field(default_factory=MattingConfig)
+    steps: int = 3
     allow_missing_sun: bool = False
     seed: int = 0
 
     def __post_init__(self) -> None:
         if not isinstance(self.step1, Step1Config):
             raise TypeError(f"step1 must be a Step1Config, got {type(self.step1).__name__}")
-        if not isinstance(self.sun, SunConfig):
-            raise TypeError(f"sun must be a SunConfig, got {type(self.sun).__name__}")
+        for name, kind in (("sun", SunConfig), ("segmentation", SegmentationConfig), ("shadow", ShadowConfig),
+                           ("matting", MattingConfig)):
+            if not isinstance(getattr(self, name), kind):
+                raise TypeError(f"{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
+        if self.steps not in (2, 3) or isinstance(self.steps, bool):
+            raise ValueError(f"steps must be 2 or 3, got {self.steps!r}")
         if not isinstance(self.allow_missing_sun, bool):
             raise TypeError(f"allow_missing_sun must be a bool, got {self.allow_missing_sun!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -91,7 +112,8 @@ class Config:
         return _from_dict(cls, data, "config")
 
 
-_NESTED = {"step1": Step1Config, "sun": SunConfig, "sky": SkyConfig}
+_NESTED = {"step1": Step1Config, "sun": SunConfig, "sky": SkyConfig, "segmentation": SegmentationConfig,
+           "shadow": ShadowConfig, "matting": MattingConfig}
 
 
 def _from_dict(kind: type, data: Mapping[str, Any], where: str) -> Any:
@@ -184,9 +206,60 @@ def step2_layers(view: View, quantities: PixelQuantities, sun_radiance: np.ndarr
     )
 
 
+@dataclass(frozen=True, eq=False)
+class Step3View:
+    """Step 3 of one view: its segmentation, shadow labels and per-pixel layers, and the seconds spent.
+
+    Parameters
+    ----------
+    segmentation : Segmentation
+    shadow : ShadowLabels
+    layers : IntrinsicLayers
+    timings : mapping of str to float
+        ``segmentation``, ``shadow_mrf`` and ``matting`` seconds.
+    """
+
+    segmentation: Segmentation
+    shadow: ShadowLabels
+    layers: IntrinsicLayers
+    timings: Mapping[str, float]
+
+
+def step3_view(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray, *,
+               config: Config | None = None) -> Step3View:
+    """Step 3 of the paper (Sec. 6) on one view: segmentation, shadow MRF, matting and layers.
+
+    Parameters
+    ----------
+    view : View
+    quantities : PixelQuantities
+        The view's per-pixel Step-1 quantities (:func:`carry_to_pixels`).
+    sun_radiance : (3,) array_like
+        ``L_sun`` from Step 2.
+    config : Config, optional
+
+    Returns
+    -------
+    Step3View
+    """
+    config = config or Config()
+    timings = {}
+    start = time.perf_counter()
+    seg = segment(view.image, mask=quantities.valid, config=config.segmentation)
+    timings["segmentation"] = time.perf_counter() - start
+    start = time.perf_counter()
+    shadow = label_shadows(view.image, quantities, seg, sun_radiance, config=config.shadow)
+    timings["shadow_mrf"] = time.perf_counter() - start
+    start = time.perf_counter()
+    layers = intrinsic_layers(view, quantities, shadow.labels, sun_radiance, clusters=seg.labels,
+                              config=config.matting)
+    timings["matting"] = time.perf_counter() - start
+    return Step3View(segmentation=seg, shadow=shadow, layers=layers, timings=timings)
+
+
 def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
               progress: bool = False) -> Decomposition:
-    """Decompose every view of a scene into reflectance and shading layers (Steps 1-2).
+    """Decompose every view of a scene into reflectance and shading layers (Steps 1-3).
 
     Parameters
     ----------
@@ -203,8 +276,9 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     -------
     Decomposition
         Per-view :class:`~mvintrinsic.results.IntrinsicLayers`, the :class:`Lighting` (sun
-        radiance, fitted sky, horizon plane, environment map), seconds per stage
-        (``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, ``layers``) and ``config.to_dict()``.
+        radiance, fitted sky, horizon plane, environment map), seconds per stage summed over the
+        views (``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then ``segmentation``,
+        ``shadow_mrf``, ``matting`` or, with ``steps=2``, ``layers``) and ``config.to_dict()``.
 
     Raises
     ------
@@ -232,9 +306,23 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     calibration = calibrate(scene, quantities, config=config, progress=progress)
     timings["sun_pairs"] = time.perf_counter() - start
 
-    start = time.perf_counter()
-    layers = {view.stem: step2_layers(view, quantities[view.stem], calibration.sun_radiance) for view in scene.views}
-    timings["layers"] = time.perf_counter() - start
+    from tqdm.auto import tqdm
+
+    if config.steps == 2:
+        start = time.perf_counter()
+        layers = {view.stem: step2_layers(view, quantities[view.stem], calibration.sun_radiance)
+                  for view in scene.views}
+        timings["layers"] = time.perf_counter() - start
+    else:
+        logger.info("step 3: segmentation, shadow MRF and matting over %d views", len(scene.views))
+        layers = {}
+        for name in ("segmentation", "shadow_mrf", "matting"):
+            timings[name] = 0.0
+        for view in tqdm(scene.views, desc="step 3", unit="view", disable=not progress):
+            result = step3_view(view, quantities[view.stem], calibration.sun_radiance, config=config)
+            layers[view.stem] = result.layers
+            for name, seconds in result.timings.items():
+                timings[name] += seconds
 
     sky = s1.sky_model
     lighting = Lighting(

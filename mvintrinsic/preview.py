@@ -93,34 +93,38 @@ def _caption(tile: np.ndarray, text: str) -> np.ndarray:
 
 def side_by_side(image: np.ndarray, layers: IntrinsicLayers, *, truth: dict[str, np.ndarray] | None = None
                  ) -> np.ndarray:
-    """One preview of a view's decomposition: input | reflectance | shading | sun visibility.
+    """One preview of a view's decomposition: input | reflectance | shading | sun visibility | labels.
 
     The image is shown at its 99th percentile, both shading rows at the 99th percentile of the
     ground-truth shading (of the estimate without ground truth), reflectance with white = 1,
-    visibility in grey. With ``truth`` (keys ``reflectance``, ``shading``,
+    visibility and the shadow labels (0 shadow, 128 undecided, 255 lit) in grey. With ``truth`` (keys ``reflectance``, ``shading``,
     ``sun_visibility``; linear arrays) a second row shows the ground truth the same way.
 
     Returns
     -------
-    (H or 2H, 4W, 3) uint8
+    (H or 2H, 5W, 3) uint8
     """
     image = np.asarray(image, dtype=np.float64)
     white = float(np.percentile(image[np.isfinite(image)], 99)) if np.isfinite(image).any() else 1.0
     reference = layers.shading if truth is None else np.asarray(truth["shading"])
     shading_white = float(np.percentile(reference[np.isfinite(reference)], 99)) if reference.size else 1.0
 
-    def row(reflectance, shading, visibility, label):
-        vis = np.repeat((np.clip(visibility, 0, 1) * 255).astype(np.uint8)[..., None], 3, axis=2)
+    def grey(values):
+        return np.repeat(np.clip(np.round(values), 0, 255).astype(np.uint8)[..., None], 3, axis=2)
+
+    def row(reflectance, shading, visibility, labels, label):
         return np.concatenate([
             _caption(tonemap(image, white=white), "input" if label == "estimate" else "ground truth"),
             _caption(tonemap(reflectance, white=1.0), f"reflectance ({label})"),
             _caption(tonemap(shading, white=shading_white), f"shading ({label})"),
-            _caption(vis, f"sun visibility ({label})"),
+            _caption(grey(np.clip(visibility, 0, 1) * 255), f"sun visibility ({label})"),
+            _caption(grey(labels), f"shadow labels ({label})"),
         ], axis=1)
 
-    rows = [row(layers.reflectance, layers.shading, layers.visibility, "estimate")]
+    rows = [row(layers.reflectance, layers.shading, layers.visibility, layers.shadow_labels, "estimate")]
     if truth is not None:
-        rows.append(row(truth["reflectance"], truth["shading"], truth["sun_visibility"], "truth"))
+        binary = np.where(np.asarray(truth["sun_visibility"]) > 0.5, 255.0, 0.0)
+        rows.append(row(truth["reflectance"], truth["shading"], truth["sun_visibility"], binary, "truth"))
     return np.concatenate(rows, axis=0)
 
 

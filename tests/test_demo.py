@@ -40,6 +40,6 @@ def test_demo_command_runs_without_mitsuba(tmp_path):
     assert result.stems == tuple(v.stem for v in scene.views)
     assert len(list((out / "compare").glob("*.png"))) == views
     tile, _ = read_image(out / "compare" / f"{scene.views[0].stem}.png")
-    assert tile.shape[:2] == (2 * scene.views[0].shape[0], 4 * scene.views[0].shape[1])  # estimate over truth
+    assert tile.shape[:2] == (2 * scene.views[0].shape[0], 5 * scene.views[0].shape[1])  # estimate over truth
     for name in ("image", "reflectance", "shading", "sun_shading", "env_shading", "sun_visibility"):
         assert len(list((out / "ground_truth" / name).glob("*.png"))) == views, name

@@ -67,9 +67,21 @@ def test_decompose_records_lighting_timings_and_config(demo_result):
     lighting = demo_result.lighting
     assert (lighting.sun_radiance > 0).all()
     assert lighting.sky.model == "preetham" and lighting.envmap is not None
-    for stage in ("step1.environment_shading", "step1.vertex_radiance", "pixels", "sun_pairs", "layers"):
+    for stage in ("step1.environment_shading", "step1.vertex_radiance", "pixels", "sun_pairs", "segmentation",
+                  "shadow_mrf", "matting"):
         assert stage in demo_result.timings
     assert Config.from_dict(demo_result.config) == Config()
+
+
+def test_steps_2_stops_after_the_sun_calibration(demo_scene, demo_result):
+    step2 = decompose(demo_scene, config=Config(steps=2))
+    assert "layers" in step2.timings and "matting" not in step2.timings
+    np.testing.assert_array_equal(step2.lighting.sun_radiance, demo_result.lighting.sun_radiance)
+    view = demo_scene.views[0]
+    # Step 2 labels are the proxy visibility thresholded; Step 3 relabels by the MRF
+    assert not np.array_equal(step2.layers[view.stem].shadow_labels, demo_result.layers[view.stem].shadow_labels)
+    with pytest.raises(ValueError, match="steps must be 2 or 3"):
+        Config(steps=4)
 
 
 def test_pixel_quantities_split_sky_covered_and_filled(demo_scene):

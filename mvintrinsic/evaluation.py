@@ -48,6 +48,7 @@ from . import metrics
 from ._validation import as_array, describe
 from ._version import __version__
 from .io import IMAGE_EXTENSIONS, SceneError, load_decomposition, read_image, read_scene_json
+from .pixels import masked_box_mean
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting
 from .scene import Sun, valid_pixels
 from .sun_position import sun_from_time
@@ -689,17 +690,6 @@ ENV_SMOOTHING_WINDOW = 5
 ENV_MIN = 1e-4
 
 
-def _masked_box_mean(values: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:
-    """Mean of ``values`` over the ``mask`` pixels of each ``window x window`` neighbourhood."""
-    from scipy.ndimage import uniform_filter
-
-    if window <= 1:
-        return values
-    weights = uniform_filter(mask.astype(np.float64), size=window, mode="constant")
-    total = uniform_filter(np.where(mask[..., None], values, 0.0), size=(window, window, 1), mode="constant")
-    return total / np.maximum(weights, 1e-12)[..., None]
-
-
 def env_shading_error(
     scene_folder: os.PathLike | str,
     estimates: Mapping[str, np.ndarray],
@@ -749,7 +739,7 @@ def env_shading_error(
             ok &= truth.sun_visibility
         if not ok.any():
             continue
-        a, b = _masked_box_mean(estimate, ok, window), _masked_box_mean(env, ok, window)
+        a, b = masked_box_mean(estimate, ok, window), masked_box_mean(env, ok, window)
         rel = (a[ok] - b[ok]) / b[ok]
         errors.append(rel)
         per_view[stem] = np.median(np.abs(rel), axis=0).tolist()

@@ -28,7 +28,7 @@ from .image_model import clamped_cosine
 from .raytrace import Step1Result, Tracer
 from .scene import View
 
-__all__ = ["PixelQuantities", "pixel_quantities"]
+__all__ = ["PixelQuantities", "masked_box_mean", "pixel_quantities"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -154,3 +154,26 @@ def pixel_quantities(view: View, step1_result: Step1Result, tracer: Tracer, *, s
         filled=filled,
         valid=valid,
     )
+
+
+def masked_box_mean(values: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:
+    """Mean of ``values`` over the ``mask`` pixels of each ``window x window`` neighbourhood.
+
+    Parameters
+    ----------
+    values : (H, W, C) array_like
+    mask : (H, W) bool
+        Pixels that count; a window with none of them gives 0.
+    window : int
+        Side in pixels; 1 or less returns ``values`` unchanged.
+
+    Returns
+    -------
+    (H, W, C) float64
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if window <= 1:
+        return values
+    weights = ndimage.uniform_filter(mask.astype(np.float64), size=window, mode="constant")
+    total = ndimage.uniform_filter(np.where(mask[..., None], values, 0.0), size=(window, window, 1), mode="constant")
+    return total / np.maximum(weights, 1e-12)[..., None]

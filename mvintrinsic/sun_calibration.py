@@ -37,7 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from .image_model import sun_radiance_from_pair
-from .pixels import PixelQuantities
+from .pixels import PixelQuantities, masked_box_mean
 from .scene import View
 
 __all__ = [
@@ -366,14 +366,9 @@ def _boundary_samples(shadow: np.ndarray, lit: np.ndarray, step: int) -> tuple[n
 
 def _region_mean(image: np.ndarray, regions: Sequence[np.ndarray], size: int) -> np.ndarray:
     """Box mean of ``image`` over ``size x size`` windows, each region averaged on its own pixels."""
-    if size <= 1:
-        return image
-    out = image.copy()
+    out = np.asarray(image, dtype=np.float64).copy()
     for region in regions:
-        weight = cv2.blur(region.astype(np.float64), (size, size), borderType=cv2.BORDER_CONSTANT)
-        total = cv2.blur(image * region[..., None], (size, size), borderType=cv2.BORDER_CONSTANT)
-        mean = total / np.maximum(weight, 1e-12)[..., None]
-        out[region] = mean[region]
+        out[region] = masked_box_mean(image, region, size)[region]
     return out
 
 

@@ -119,8 +119,7 @@ from scipy import ndimage
 from scipy.sparse import linalg as spla
 
 from ._validation import as_array, describe
-from .image_model import sun_shading, total_shading
-from .pixels import PixelQuantities
+from .pixels import SHADING_FLOOR, PixelQuantities, layers_from_shading
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import View
 from .segmentation import boundary_band
@@ -219,7 +218,7 @@ class MattingConfig:
     rtol: float = 1e-6
     max_iter: int = 2000
     ichol_threshold: float = 1e-4
-    shading_floor: float = 1e-3
+    shading_floor: float = SHADING_FLOOR
 
     def __post_init__(self) -> None:
         for name, least in (("trimap_radius", 1), ("visibility_cluster_width", 0), ("cluster_boundary_width", 0),
@@ -914,20 +913,5 @@ def intrinsic_layers(
         cosine = np.clip(stacked[..., 6], 0.0, 1.0)
         logger.info("view %r: Laplacian %.2f s, visibility matte %.2f s, shading propagation %.2f s", view.stem,
                     built - began, matted - built, time.perf_counter() - matted)
-    sun = sun_shading(radiance, cosine)                                                    # Eq. 3
-    total = total_shading(sky, indirect, visibility, sun)                                  # Eq. 17
-    if valid.any():
-        floor = config.shading_floor * float(np.median(total[valid]))
-        indirect = indirect + np.where(valid[..., None], np.maximum(floor - total, 0.0), 0.0)
-        total = total_shading(sky, indirect, visibility, sun)                              # Eq. 17
-    reflectance = np.divide(image, total, out=np.zeros_like(image), where=valid[..., None] & (total > 0))
-    zero = ~valid[..., None]
-    return IntrinsicLayers(
-        stem=view.stem,
-        reflectance=reflectance.astype(np.float32),
-        sun_shading=np.where(zero, 0.0, sun).astype(np.float32),
-        sky_shading=np.where(zero, 0.0, sky).astype(np.float32),
-        indirect_shading=np.where(zero, 0.0, indirect).astype(np.float32),
-        visibility=np.where(valid, visibility, 0.0).astype(np.float32),
-        shadow_labels=np.where(valid, labels, _UNDECIDED).astype(np.uint8),
-    )
+    return layers_from_shading(view, valid, sky, indirect, visibility, cosine, radiance, labels,  # Eqs. 3, 17
+                               floor=config.shading_floor)

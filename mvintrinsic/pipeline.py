@@ -30,9 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from .image_model import sun_shading, total_shading
 from .matting import MattingConfig, intrinsic_layers
-from .pixels import PixelQuantities, pixel_quantities
+from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
 from .raytrace import Step1Config, Step1Result, Tracer, step1
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from .scene import Scene, View
@@ -44,11 +43,6 @@ from .sun_calibration import SunCalibration, SunConfig, calibrate_sun, find_sun_
 __all__ = ["Config", "Step3View", "calibrate", "carry_to_pixels", "decompose", "step2_layers", "step3_view"]
 
 logger = logging.getLogger(__name__)
-
-#: Shading below this fraction of the view's median total shading is raised to it in ``S_ind`` so
-#: that ``R = I / S_tot`` stays finite (a pixel the proxy says receives no light at all).
-SHADING_FLOOR = 1e-3
-
 
 @dataclass(frozen=True)
 class Config:
@@ -162,8 +156,8 @@ def step2_layers(view: View, quantities: PixelQuantities, sun_radiance: np.ndarr
 
     ``v_sun`` is the proxy visibility ``~v`` carried to the pixels; the shadow labels threshold it
     at 1/2. Sky and invalid pixels hold zeros and label 128. Where the total shading is below
-    :data:`SHADING_FLOOR` times the view's median, ``S_ind`` is raised so that it reaches that
-    floor (the reflectance stays finite and ``R * S_tot`` still reproduces the image).
+    :data:`~mvintrinsic.pixels.SHADING_FLOOR` times the view's median, ``S_ind`` is raised so that
+    it reaches that floor (:func:`~mvintrinsic.pixels.layers_from_shading`).
 
     Parameters
     ----------
@@ -180,30 +174,9 @@ def step2_layers(view: View, quantities: PixelQuantities, sun_radiance: np.ndarr
     if view.stem != quantities.stem or view.camera.shape != quantities.shape:
         raise ValueError(f"quantities ({quantities.stem!r}) do not belong to view {view.stem!r}")
     valid = quantities.valid
-    image = np.where(valid[..., None], np.asarray(view.image, dtype=np.float64), 0.0)
-    sun = sun_shading(sun_radiance, quantities.cosine)                                   # Eq. 3
-    sky = quantities.sky.astype(np.float64)
-    indirect = quantities.indirect.astype(np.float64)
-    visibility = quantities.visibility.astype(np.float64)
-    total = total_shading(sky, indirect, visibility, sun)                                # Eq. 17
-    if valid.any():
-        floor = SHADING_FLOOR * float(np.median(total[valid]))
-        indirect = indirect + np.where(valid[..., None], np.maximum(floor - total, 0.0), 0.0)
-        total = total_shading(sky, indirect, visibility, sun)
-    reflectance = np.divide(image, total, out=np.zeros_like(image), where=valid[..., None] & (total > 0))  # Eq. 2
-    labels = np.full(quantities.shape, SHADOW_LABELS["undecided"], dtype=np.uint8)
-    labels[valid & (visibility < 0.5)] = SHADOW_LABELS["shadow"]
-    labels[valid & (visibility >= 0.5)] = SHADOW_LABELS["lit"]
-    zero = ~valid[..., None]
-    return IntrinsicLayers(
-        stem=view.stem,
-        reflectance=reflectance.astype(np.float32),
-        sun_shading=np.where(zero, 0.0, sun).astype(np.float32),
-        sky_shading=np.where(zero, 0.0, sky).astype(np.float32),
-        indirect_shading=np.where(zero, 0.0, indirect).astype(np.float32),
-        visibility=np.where(valid, visibility, 0.0).astype(np.float32),
-        shadow_labels=labels,
-    )
+    labels = np.where(quantities.visibility >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
+    return layers_from_shading(view, valid, quantities.sky, quantities.indirect, quantities.visibility,  # Eqs. 2, 17
+                               quantities.cosine, sun_radiance, labels)
 
 
 @dataclass(frozen=True, eq=False)

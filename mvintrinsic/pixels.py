@@ -24,11 +24,16 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from .image_model import clamped_cosine
+from .image_model import clamped_cosine, sun_shading, total_shading
 from .raytrace import Step1Result, Tracer
+from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import View
 
-__all__ = ["PixelQuantities", "masked_box_mean", "pixel_quantities"]
+#: Total shading below this fraction of the view's median is raised to it in ``S_ind`` so that
+#: ``R = I / S_tot`` stays finite (a pixel the proxy says receives no light at all).
+SHADING_FLOOR = 1e-3
+
+__all__ = ["SHADING_FLOOR", "PixelQuantities", "layers_from_shading", "masked_box_mean", "pixel_quantities"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -177,3 +182,55 @@ def masked_box_mean(values: np.ndarray, mask: np.ndarray, window: int) -> np.nda
     weights = ndimage.uniform_filter(mask.astype(np.float64), size=window, mode="constant")
     total = ndimage.uniform_filter(np.where(mask[..., None], values, 0.0), size=(window, window, 1), mode="constant")
     return total / np.maximum(weights, 1e-12)[..., None]
+
+
+def layers_from_shading(view: View, valid: np.ndarray, sky: np.ndarray, indirect: np.ndarray,
+                        visibility: np.ndarray, cosine: np.ndarray, sun_radiance: np.ndarray, labels: np.ndarray,
+                        *, floor: float = SHADING_FLOOR) -> IntrinsicLayers:
+    """Intrinsic layers of a view from its per-pixel shading terms: ``R = I / S_tot`` (Eqs. 3, 17).
+
+    ``S_sun = L_sun max(0, cos)`` (Eq. 3), ``S_tot = S_sky + S_ind + v_sun S_sun`` (Eq. 17). Where
+    ``S_tot`` is below ``floor`` times the view's median over ``valid``, ``S_ind`` is raised to reach
+    it, so ``R`` stays finite and ``R * S_tot`` reproduces the image. Pixels outside ``valid`` hold
+    zeros and label 128.
+
+    Parameters
+    ----------
+    view : View
+    valid : (H, W) bool
+        Pixels with an estimate.
+    sky, indirect : (H, W, 3) array_like
+        ``S_sky``, ``S_ind``, shading units.
+    visibility, cosine : (H, W) array_like
+        ``v_sun`` in [0, 1] and ``max(0, cos omega_sun)``.
+    sun_radiance : (3,) array_like
+        ``L_sun``.
+    labels : (H, W) uint8
+        Shadow labels (0 shadow, 255 lit, 128 undecided) on the valid pixels.
+    floor : float, optional
+
+    Returns
+    -------
+    IntrinsicLayers
+    """
+    image = np.where(valid[..., None], np.asarray(view.image, dtype=np.float64), 0.0)
+    sky = np.asarray(sky, dtype=np.float64)
+    indirect = np.asarray(indirect, dtype=np.float64)
+    visibility = np.asarray(visibility, dtype=np.float64)
+    sun = sun_shading(sun_radiance, cosine)                                              # Eq. 3
+    total = total_shading(sky, indirect, visibility, sun)                                # Eq. 17
+    if valid.any():
+        lowest = floor * float(np.median(total[valid]))
+        indirect = indirect + np.where(valid[..., None], np.maximum(lowest - total, 0.0), 0.0)
+        total = total_shading(sky, indirect, visibility, sun)
+    reflectance = np.divide(image, total, out=np.zeros_like(image), where=valid[..., None] & (total > 0))  # Eq. 2
+    zero = ~valid[..., None]
+    return IntrinsicLayers(
+        stem=view.stem,
+        reflectance=reflectance.astype(np.float32),
+        sun_shading=np.where(zero, 0.0, sun).astype(np.float32),
+        sky_shading=np.where(zero, 0.0, sky).astype(np.float32),
+        indirect_shading=np.where(zero, 0.0, indirect).astype(np.float32),
+        visibility=np.where(valid, visibility, 0.0).astype(np.float32),
+        shadow_labels=np.where(valid, labels, SHADOW_LABELS["undecided"]).astype(np.uint8),
+    )

@@ -372,10 +372,23 @@ def _region_mean(image: np.ndarray, regions: Sequence[np.ndarray], size: int) ->
     return out
 
 
+#: Scores within this relative distance of a row's best count as tied (uniform textures give 5x5
+#: means equal up to rounding).
+TIE_TOLERANCE = 1e-9
+
+
 def _pick(scores: np.ndarray, how: str) -> np.ndarray:
-    """Per row, the index of the smallest finite score (``"extreme"``) or of the median one."""
+    """Per row, the index of the smallest finite score (``"extreme"``) or of the median one.
+
+    Columns are walk steps ordered by distance from the boundary; among scores tied with the best
+    (within :data:`TIE_TOLERANCE`) the nearest step wins, so the choice does not depend on
+    rounding. (The farthest tied step was measured too: on the clean demo it lowered the share of
+    true pairs from 55% to 43%, the walk reaching other materials more often.)
+    """
     if how == "extreme":
-        return np.argmin(scores, axis=1)
+        best = np.min(scores, axis=1, keepdims=True)
+        tied = scores <= best + TIE_TOLERANCE * np.abs(np.where(np.isfinite(best), best, 0.0))
+        return np.argmax(tied, axis=1)
     order = np.argsort(scores, axis=1, kind="stable")
     count = np.isfinite(scores).sum(axis=1)
     return order[np.arange(len(scores)), np.maximum(count - 1, 0) // 2]

@@ -90,6 +90,18 @@ def test_pairs_of_one_material_give_the_exact_sun_radiance():
     assert sum(pairs.rejected.values()) + len(pairs) == pairs.n_samples
 
 
+def test_ties_go_to_the_nearest_pixels_beyond_the_penumbra():
+    view, q = make_view([0.5, 0.45, 0.4])  # uniform material: every walk pixel beyond the penumbra ties
+    pairs = find_sun_pairs(view, q)
+    # the smoothed values tie up to rounding; the nearest pixels past the 5x5 window's reach win
+    assert (pairs.lit[:, 1] <= EDGE + 5).all() and (pairs.lit[:, 1] > EDGE).all()
+    assert (pairs.shadow[:, 1] >= EDGE - 6).all() and (pairs.shadow[:, 1] < EDGE - 1).all()
+    smoothed = SunConfig(smoothing=5)
+    tol = [find_sun_pairs(View(view.stem, view.image * np.float32(f), view.camera), q, config=smoothed).lit
+           for f in (1.0, 3.0)]
+    np.testing.assert_array_equal(tol[0], tol[1])  # a global scale (rounding differs) picks the same pixels
+
+
 def test_median_pick_is_exact_on_one_material_too():
     view, q = make_view([0.5, 0.45, 0.4])
     pairs = find_sun_pairs(view, q, config=SunConfig(pick="median"))

@@ -35,7 +35,7 @@ from bench_step1_accuracy import CLEAN_MAX_EDGE, CLEAN_RADIUS, scenes
 
 import mvintrinsic
 from mvintrinsic import Scene
-from mvintrinsic.evaluation import evaluate
+from mvintrinsic.evaluation import evaluate, read_ground_truth_lighting
 from mvintrinsic.io import load_scene, read_image, read_proxy, save_decomposition, write_json
 from mvintrinsic.pipeline import Config, calibrate, carry_to_pixels, decompose, step2_layers
 from mvintrinsic.raytrace import Tracer, step1, subdivide
@@ -77,7 +77,7 @@ def run(folder: Path, scene: Scene, config: Config) -> dict:
     calibration = calibrate(scene, quantities, config=config)
     layers = {v.stem: step2_layers(v, quantities[v.stem], calibration.sun_radiance) for v in scene.views}
     seconds = time.perf_counter() - start
-    truth = np.asarray(read_ground_truth_sun(folder))
+    truth = read_ground_truth_lighting(folder).sun_radiance
     result = Decomposition(layers=layers, lighting=Lighting(sun=scene.sun, sun_radiance=calibration.sun_radiance,
                                                             up=scene.up), config=config.to_dict())
     with tempfile.TemporaryDirectory() as tmp:
@@ -96,12 +96,6 @@ def run(folder: Path, scene: Scene, config: Config) -> dict:
         "true_pair_fraction": true_pair_fraction(folder, scene, calibration),
         "scores": {k: scores["mean"][k] for k in SCORES},
     }
-
-
-def read_ground_truth_sun(folder: Path) -> list[float]:
-    import json
-
-    return json.loads((folder / "gt" / "lighting.json").read_text())["sun_radiance"]
 
 
 def timing(folder: Path, config: Config) -> dict:

@@ -129,10 +129,10 @@ def demo_scene_path() -> Path:
     return Path(str(files("mvintrinsic") / "data" / "demo"))
 
 
-def _print_decomposition(result, scene: Scene, calibration_note: str = "") -> None:
+def _print_decomposition(result, scene: Scene) -> None:
     sun = result.lighting.sun_radiance
     sky = result.lighting.sky
-    print(f"L_sun        {np.round(sun, 4).tolist()} (shading units){calibration_note}")
+    print(f"L_sun        {np.round(sun, 4).tolist()} (shading units)")
     if sky is not None:
         print(f"sky          {sky.model}, turbidity {sky.turbidity:.2f}, scale {np.round(sky.scale, 4).tolist()}")
     step1 = sum(v for k, v in result.timings.items() if k.startswith("step1."))

@@ -284,12 +284,12 @@ def shadow_regions(image: np.ndarray, quantities: PixelQuantities, *, config: Su
     if usable.sum() < config.n_clusters:
         return cluster_shadow, cluster_shadow.copy(), cluster_shadow.copy()
     labels, _ = luminance_kmeans(luminance(np.asarray(image)[usable]), config.n_clusters)
-    in_shadow = quantities.visibility[usable] < 0.5
+    proxy_shadow = quantities.visibility < 0.5
+    in_shadow = proxy_shadow[usable]
     share = in_shadow.mean()
     shadow_clusters = [c for c in range(config.n_clusters)
                        if (labels == c).any() and in_shadow[labels == c].mean() > share]
     cluster_shadow[usable] = np.isin(labels, shadow_clusters)
-    proxy_shadow = quantities.visibility < 0.5
     return cluster_shadow & proxy_shadow & usable, ~cluster_shadow & ~proxy_shadow & usable, cluster_shadow
 
 
@@ -429,16 +429,15 @@ def find_sun_pairs(view: View, quantities: PixelQuantities, *, config: SunConfig
         return empty
 
     lit_ok = lit & (quantities.cosine >= config.min_cosine)
-    steps = np.arange(1, config.walk + 1)
-    # Walk coordinates (S, walk): toward light (+direction) and toward shadow (-direction).
-    walks = {}
-    for side, sign in (("lit", 1.0), ("shadow", -1.0)):
-        rc = np.rint(points[:, None, :] + sign * steps[None, :, None] * direction[:, None, :]).astype(np.int64)
-        inside = (rc[..., 0] >= 0) & (rc[..., 0] < h) & (rc[..., 1] >= 0) & (rc[..., 1] < w)
-        rc = np.where(inside[..., None], rc, 0)
-        walks[side] = (rc, inside)
-    lit_rc, lit_in = walks["lit"]
-    sh_rc, sh_in = walks["shadow"]
+    # One line of pixels per sample, offsets -walk..walk along the boundary normal (S, 2 walk + 1):
+    # the positive half is the walk toward the light, the negative half (read outward) the walk
+    # into the shadow, and the stretch between the two picked pixels is tested for discontinuities.
+    offsets = np.arange(-config.walk, config.walk + 1)
+    line = np.rint(points[:, None, :] + offsets[None, :, None] * direction[:, None, :]).astype(np.int64)
+    line_in = (line[..., 0] >= 0) & (line[..., 0] < h) & (line[..., 1] >= 0) & (line[..., 1] < w)
+    line = np.where(line_in[..., None], line, 0)
+    lit_rc, lit_in = line[:, config.walk + 1:], line_in[:, config.walk + 1:]
+    sh_rc, sh_in = line[:, config.walk - 1::-1], line_in[:, config.walk - 1::-1]
     lit_cand = lit_in & lit_ok[lit_rc[..., 0], lit_rc[..., 1]]
     sh_cand = sh_in & shadow[sh_rc[..., 0], sh_rc[..., 1]]
 
@@ -465,11 +464,8 @@ def find_sun_pairs(view: View, quantities: PixelQuantities, *, config: SunConfig
 
     # Reject when the segment from the shadowed to the lit pixel crosses a proxy discontinuity.
     edges = discontinuity_edges(quantities, config=config)
-    offsets = np.arange(-config.walk, config.walk + 1)
-    seg = np.rint(points[keep, None, :] + offsets[None, :, None] * direction[keep, None, :]).astype(np.int64)
-    seg_in = (seg[..., 0] >= 0) & (seg[..., 0] < h) & (seg[..., 1] >= 0) & (seg[..., 1] < w)
-    within = (offsets[None, :] >= -(i_sh[:, None] + 1)) & (offsets[None, :] <= i_lit[:, None] + 1) & seg_in
-    seg = np.where(seg_in[..., None], seg, 0)
+    seg = line[keep]
+    within = (offsets[None, :] >= -(i_sh[:, None] + 1)) & (offsets[None, :] <= i_lit[:, None] + 1) & line_in[keep]
     crosses = (edges[seg[..., 0], seg[..., 1]] & within).any(axis=1)
     rejected["discontinuity"] = int(crosses.sum())
     keep, i_lit, i_sh = keep[~crosses], i_lit[~crosses], i_sh[~crosses]

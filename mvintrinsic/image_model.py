@@ -32,7 +32,9 @@ import numpy as np
 
 __all__ = [
     "DENOMINATOR_EPS",
+    "LUMINANCE_WEIGHTS",
     "clamped_cosine",
+    "luminance",
     "reflectance",
     "render",
     "sun_radiance_from_pair",
@@ -42,6 +44,14 @@ __all__ = [
 
 #: Denominators whose magnitude is at or below this are treated as zero (result NaN).
 DENOMINATOR_EPS = 1e-12
+
+#: Rec. 709 / sRGB luminance weights of linear RGB (the colour space of ``docs/conventions.md``).
+LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
+
+
+def luminance(image: np.ndarray) -> np.ndarray:
+    """Rec. 709 luminance of linear RGB ``(..., 3)`` -> ``(...)`` float64."""
+    return np.asarray(image, dtype=np.float64) @ LUMINANCE_WEIGHTS
 
 
 def _rgb(value: object, name: str) -> np.ndarray:

@@ -109,6 +109,7 @@ from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
 from ._validation import as_array, describe
+from .image_model import LUMINANCE_WEIGHTS
 
 __all__ = [
     "SEGMENTATION_METHODS",
@@ -125,8 +126,8 @@ __all__ = [
 #: Valid values of :attr:`SegmentationConfig.method`.
 SEGMENTATION_METHODS = ("mean_shift", "slic")
 
-#: Rec. 709 / sRGB luminance weights of linear RGB.
-LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722], dtype=np.float32)
+#: :data:`~mvintrinsic.image_model.LUMINANCE_WEIGHTS` in the float32 of the images.
+_LUMINANCE_WEIGHTS = LUMINANCE_WEIGHTS.astype(np.float32)
 
 #: Largest 8-bit codes per CIELAB unit given to OpenCV's mean-shift filter (OpenCV's own L* scale).
 MAX_CODES_PER_DELTA_E = 2.55
@@ -503,7 +504,7 @@ def perceptual_lab(image: np.ndarray, *, mask: np.ndarray | None = None, white_p
 
 def _perceptual_lab(rgb: np.ndarray, valid: np.ndarray, white_percentile: float) -> np.ndarray:
     rgb = np.where(valid[..., None], rgb, np.float32(0.0))
-    luminance = rgb[valid] @ LUMINANCE_WEIGHTS
+    luminance = rgb[valid] @ _LUMINANCE_WEIGHTS
     white = float(np.percentile(luminance, white_percentile)) if luminance.size else 0.0
     if not white > 0:  # a (mostly) black image: fall back to its brightest value
         white = float(rgb.max()) if rgb.max() > 0 else 1.0

@@ -52,6 +52,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from ._validation import as_array, as_unit_vector, describe
+from .image_model import LUMINANCE_WEIGHTS
 from .results import SkyParameters
 from .scene import View
 
@@ -629,10 +630,6 @@ def partial_environment_map(
 # ------------------------------------------------------------------------------------------------
 # Sky detection
 # ------------------------------------------------------------------------------------------------
-#: Rec.709 luminance weights (linear RGB -> Y).
-_LUMA = np.array([0.2126, 0.7152, 0.0722])
-
-
 def detect_sky(
     partial: PartialEnvironmentMap, *, horizon_normal: object, config: SkyConfig | None = None
 ) -> np.ndarray:
@@ -671,7 +668,7 @@ def detect_sky(
         return sky
     rgb = partial.radiance[candidates].astype(np.float64)
     total = rgb.sum(axis=1)
-    luminance = rgb @ _LUMA
+    luminance = rgb @ LUMINANCE_WEIGHTS
     reference = float(np.percentile(luminance, config.sky_luminance_percentile))
     with np.errstate(divide="ignore", invalid="ignore"):
         blue = np.where(total > 0, rgb[:, 2] / total, 0.0)

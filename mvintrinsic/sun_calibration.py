@@ -36,7 +36,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
-from .image_model import sun_radiance_from_pair
+from .image_model import luminance, sun_radiance_from_pair
 from .pixels import PixelQuantities, masked_box_mean
 from .scene import View
 
@@ -50,7 +50,6 @@ __all__ = [
     "chromaticity",
     "discontinuity_edges",
     "find_sun_pairs",
-    "luminance",
     "luminance_kmeans",
     "shadow_regions",
 ]
@@ -60,8 +59,6 @@ logger = logging.getLogger(__name__)
 #: Why a boundary sample gave no pair, in the order the rules are applied.
 REJECTION_RULES = ("no_candidates", "no_similar_chromaticity", "discontinuity", "degenerate")
 
-#: Rec. 709 / sRGB luminance weights of linear RGB.
-LUMINANCE_WEIGHTS = np.array([0.2126, 0.7152, 0.0722])
 
 
 class SunCalibrationError(RuntimeError):
@@ -211,11 +208,6 @@ class SunCalibration:
     def __repr__(self) -> str:
         return (f"SunCalibration(L_sun={np.round(self.sun_radiance, 4).tolist()}, pairs={self.n_pairs}, "
                 f"fallback={self.fallback})")
-
-
-def luminance(image: np.ndarray) -> np.ndarray:
-    """Rec. 709 luminance of linear RGB ``(..., 3)`` -> ``(...)``."""
-    return np.asarray(image, dtype=np.float64) @ LUMINANCE_WEIGHTS
 
 
 def chromaticity(image: np.ndarray) -> np.ndarray:

@@ -15,7 +15,9 @@ street seed 0, 8 views 240x180, 128 spp, sun drawn from the seed). For each scen
   (relative RMSE, solid-angle weighted; texels within 5 degrees of the sun excluded);
 * the same ``S_env`` error with the true Hosek-Wilkie sky put into the environment map, which
   separates the sky model's share of the error from the rest;
-* with the clean proxy, the ``S_env`` error without the paper's indirect attenuation factor.
+* the indirect attenuation factor (``Step1Config.indirect_attenuation``) on every hit (the paper,
+  entries ``mvs`` and ``clean``), only on unseen vertices' radiance (``*_unseen_attenuation``),
+  and, with the clean proxy, nowhere (``clean_no_attenuation``).
 
 The clean proxy is the scene's ``proxy_clean.ply`` (the exact mesh) subdivided to 20 cm edges
 within 30 m of the cameras (``mvintrinsic.raytrace.subdivide``): its triangles are metres wide
@@ -155,20 +157,18 @@ def main() -> None:
         clean = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centers.mean(axis=0),
                           radius=CLEAN_RADIUS)
         entry = {}
-        for proxy_name, proxy in (("mvs", base.proxy), ("clean", clean)):
-            entry[proxy_name] = evaluate(folder, Scene(base.views, proxy, base.sun, base.up), config)
-            e = entry[proxy_name]
-            print(f"{name:14s} {proxy_name:5s} {e['vertices']:8d} v  S_env shadow err "
-                  f"{np.round(e['env_shadow']['median_rel_error'], 3)} (true sky "
+        # (entry key, proxy, indirect attenuation): the paper's factor on every hit is the default
+        runs = (("mvs", base.proxy, "all"), ("clean", clean, "all"), ("mvs_unseen_attenuation", base.proxy, "unseen"),
+                ("clean_unseen_attenuation", clean, "unseen"), ("clean_no_attenuation", clean, "none"))
+        for key, proxy, attenuation in runs:
+            entry[key] = e = evaluate(folder, Scene(base.views, proxy, base.sun, base.up),
+                                      replace(config, indirect_attenuation=attenuation))
+            print(f"{name:14s} {key:24s} {e['vertices']:8d} v  S_env shadow err "
+                  f"{np.round(e['env_shadow']['median_rel_error'], 3)} signed "
+                  f"{np.round(e['env_shadow']['median_signed_rel_error'], 3)} (true sky "
                   f"{np.round(e.get('env_shadow_true_sky', {}).get('median_rel_error', [np.nan] * 3), 3)})  "
                   f"BER {e['visibility']['ber']:.3f}  sky rmse seen {e.get('sky_rel_rmse_seen', np.nan):.3f} "
-                  f"hemi {e.get('sky_rel_rmse_hemisphere', np.nan):.3f}  {e['seconds']:.1f} s")
-        no_attenuation = replace(config, indirect_attenuation=False)
-        entry["clean_no_attenuation"] = evaluate(folder, Scene(base.views, clean, base.sun, base.up), no_attenuation)
-        e = entry["clean_no_attenuation"]
-        print(f"{name:14s} clean without the attenuation factor: S_env shadow err "
-              f"{np.round(e['env_shadow']['median_rel_error'], 3)} (true sky "
-              f"{np.round(e.get('env_shadow_true_sky', {}).get('median_rel_error', [np.nan] * 3), 3)})")
+                  f"hemi {e.get('sky_rel_rmse_hemisphere', np.nan):.3f}  {e['seconds']:.1f} s", flush=True)
         report["scenes"][name] = entry
     if args.out is not None:
         write_json(args.out, report)

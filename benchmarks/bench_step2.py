@@ -14,7 +14,9 @@ synthetic courtyard seed 1 and street seed 0 of ``bench_step1_accuracy.py``) and
   pixel is lit and the shadowed pixel shadowed in ``gt/sun_visibility``, and the exact mesh shows
   the same material at both (``gt/mesh_faces.npz``);
 * the Step-2 decomposition scored by ``mvintrinsic.evaluation.evaluate`` (LMSE of reflectance and
-  shading, BER of the shadow labels, reconstruction PSNR), mean over views.
+  shading, BER of the shadow labels, reconstruction PSNR), mean over views;
+* each of these again with Step 1's indirect attenuation only on unseen vertices' radiance
+  (``Step1Config(indirect_attenuation="unseen")``, entries ``*_unseen_attenuation``).
 
 ``--history`` writes the MVS-proxy scores (the default input) as one point of the accuracy
 history. ``--timing SCENE`` decomposes SCENE at a longer side of 480 and of 1000 pixels and
@@ -28,6 +30,7 @@ import os
 import platform
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -139,10 +142,14 @@ def main() -> None:
             proxies["clean"] = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE,
                                          center=centers.mean(axis=0), radius=CLEAN_RADIUS)
         entry = {}
-        for proxy_name, proxy in proxies.items():
-            e = entry[proxy_name] = run(folder, Scene(base.views, proxy, base.sun, base.up), config)
+        # the paper's attenuation factor (default) and, as a variant, only on unseen vertices' radiance
+        unseen = replace(config, step1=replace(config.step1, indirect_attenuation="unseen"))
+        runs = [(key, proxy, config) for key, proxy in proxies.items()]
+        runs += [(f"{key}_unseen_attenuation", proxy, unseen) for key, proxy in proxies.items()]
+        for proxy_name, proxy, run_config in runs:
+            e = entry[proxy_name] = run(folder, Scene(base.views, proxy, base.sun, base.up), run_config)
             frac = e["true_pair_fraction"]
-            print(f"{name:14s} {proxy_name:5s} L_sun {np.round(e['sun_radiance'], 3)} truth "
+            print(f"{name:14s} {proxy_name:24s} L_sun {np.round(e['sun_radiance'], 3)} truth "
                   f"{np.round(e['sun_radiance_truth'], 3)} rel {np.round(e['sun_radiance_rel_error'], 3)}  "
                   f"pairs {e['pairs']}/{e['samples']} true {'-' if frac is None else f'{frac:.2f}'}  "
                   f"LMSE_R {e['scores']['lmse_reflectance']:.4f} LMSE_S {e['scores']['lmse_shading']:.4f} "

@@ -281,6 +281,21 @@ class Tracer:
 # ---------------------------------------------------------------------------------------------
 # Step 1 (paper Sec. 4): proxy radiance, sky and indirect shading, proxy sun visibility
 # ---------------------------------------------------------------------------------------------
+#: Where the paper's indirect attenuation factor applies (:class:`Step1Config`).
+ATTENUATION_MODES = ("all", "unseen", "none")
+
+
+def _attenuation_mode(value: object, name: str = "attenuation") -> str:
+    """``value`` as one of :data:`ATTENUATION_MODES` (``True`` -> ``"all"``, ``False`` -> ``"none"``)."""
+    if value is True:
+        return "all"
+    if value is False:
+        return "none"
+    if isinstance(value, str) and value in ATTENUATION_MODES:
+        return value
+    raise ValueError(f"{name} must be one of {', '.join(map(repr, ATTENUATION_MODES))} (or a bool), got {value!r}")
+
+
 @dataclass(frozen=True)
 class Step1Config:
     """Options of Step 1 (paper Sec. 4); defaults measured in ``benchmarks/bench_step1.py``.
@@ -293,9 +308,15 @@ class Step1Config:
     ray_offset : float
         Metres the ray origins move along the normal, against self-intersection with a noisy
         proxy (about a TSDF voxel).
-    indirect_attenuation : bool
-        Scale gathered proxy radiance by the cosine of the contributing surface's normal, the
-        paper's attenuation factor against over-estimated indirect light (Sec. 4).
+    indirect_attenuation : {"all", "unseen", "none"}
+        Where gathered proxy radiance is scaled by the cosine of the contributing surface's
+        normal, the paper's attenuation factor against over-estimated indirect light (Sec. 4):
+        ``"all"`` (the paper, default) on every hit; ``"unseen"`` only on the radiance of
+        vertices no view sees (filled from their nearest seen neighbour), which is the only
+        extrapolated radiance when the proxy is exact and complete (a CAD model, a LiDAR scan,
+        the synthetic ``proxy_clean.ply``); ``"none"`` nowhere. ``True``/``False`` are read as
+        ``"all"``/``"none"``. Measured in ``docs/step1.md``: ``"unseen"`` is the better choice
+        with exact geometry (every clean-proxy scene within 25%), ``"all"`` with MVS proxies.
     subsample : float or None
         Voxel size (metres) of the points at which ``S_sky`` and ``S_ind`` are ray traced; the
         other vertices interpolate them (they are smooth). ``None``: every vertex.
@@ -311,7 +332,7 @@ class Step1Config:
 
     n_rays: int = 64
     ray_offset: float = 0.02
-    indirect_attenuation: bool = True
+    indirect_attenuation: str = "all"
     subsample: float | None = 0.1
     interpolation_neighbors: int = 8
     depth_tolerance: float = 0.02
@@ -319,6 +340,8 @@ class Step1Config:
     batch_rays: int = 1 << 21
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "indirect_attenuation",
+                           _attenuation_mode(self.indirect_attenuation, "indirect_attenuation"))
         if isinstance(self.n_rays, bool) or not isinstance(self.n_rays, int) or self.n_rays < 1:
             raise ValueError(f"n_rays must be a positive integer, got {self.n_rays!r}")
         if not self.ray_offset >= 0:
@@ -554,7 +577,7 @@ def environment_shading(
     *,
     n_rays: int = 64,
     ray_offset: float = 0.02,
-    attenuation: bool = True,
+    attenuation: str | bool = "all",
     rng: np.random.Generator | int | None = None,
     batch_rays: int = 1 << 21,
     progress: bool = False,
@@ -566,9 +589,11 @@ def environment_shading(
     traverse the same part of the BVH). A ray that misses the proxy reads the environment map in
     its direction: sky texels feed ``S_sky``, other texels ``S_ind``. A ray that hits the proxy
     feeds ``S_ind`` with the radiance interpolated from the hit triangle's vertices, times the
-    cosine between the hit surface's normal and the ray when ``attenuation`` (the paper's
-    attenuation factor). With cosine-weighted sampling the mean over the rays is the shading
-    (irradiance / pi).
+    paper's attenuation factor, the cosine between the hit surface's normal and the ray:
+    on every hit with ``attenuation="all"``, on the share of the hit's radiance that comes
+    from unseen vertices (NaN rows of ``radiance``, barycentric weights) with ``"unseen"``,
+    nowhere with ``"none"``. With cosine-weighted sampling the mean over the rays is the
+    shading (irradiance / pi).
 
     Parameters
     ----------
@@ -577,7 +602,10 @@ def environment_shading(
     tracer : Tracer
     environment : EnvironmentMap
     radiance : (N, 3) array_like
-        Radiance of every proxy vertex (NaN rows get their nearest seen neighbour's value).
+        Radiance of every proxy vertex (NaN rows, vertices no view sees, get their nearest seen
+        neighbour's value).
+    attenuation : {"all", "unseen", "none"} or bool, optional
+        See :class:`Step1Config` ``indirect_attenuation``.
 
     Returns
     -------
@@ -585,10 +613,13 @@ def environment_shading(
     """
     from tqdm.auto import tqdm
 
+    mode = _attenuation_mode(attenuation)
     points = np.asarray(points, dtype=np.float64)
     normals = np.asarray(normals, dtype=np.float64)
     gen = _rng(rng)
-    vertex_values = _fill_unseen(np.asarray(radiance, dtype=np.float64), tracer.proxy.vertices)
+    radiance = np.asarray(radiance, dtype=np.float64)
+    unseen = (~np.isfinite(radiance).all(axis=1)).astype(np.float64)[:, None]
+    vertex_values = _fill_unseen(radiance, tracer.proxy.vertices)
     order = morton_order(points)
     sky = np.zeros((len(points), 3))
     indirect = np.zeros((len(points), 3))
@@ -606,8 +637,12 @@ def environment_shading(
         to_sky[np.flatnonzero(miss)[is_sky]] = env[is_sky]
         contribution[np.flatnonzero(miss)[~is_sky]] = env[~is_sky]
         gathered = tracer.interpolate(vertex_values, hits)
-        if attenuation:
-            gathered *= np.abs(np.einsum("ij,ij->i", hits.normals, directions))[:, None]
+        if mode != "none":
+            cosine = np.abs(np.einsum("ij,ij->i", hits.normals, directions))
+            if mode == "unseen":  # attenuate only the unseen vertices' share of the hit
+                share = tracer.interpolate(unseen, hits)[:, 0]
+                cosine = 1.0 - share + share * cosine
+            gathered *= cosine[:, None]
         contribution[hits.hit] = gathered[hits.hit]
         sky[idx] = to_sky.reshape(len(idx), n_rays, 3).mean(axis=1)
         indirect[idx] = contribution.reshape(len(idx), n_rays, 3).mean(axis=1)

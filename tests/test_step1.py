@@ -129,6 +129,37 @@ def test_point_at_the_foot_of_a_wall(attenuation):
     np.testing.assert_allclose(ind[0], expected, rtol=MC_TOL)
 
 
+def test_attenuation_only_on_unseen_radiance():
+    """``attenuation="unseen"`` scales only the radiance no view saw.
+
+    The wall at the foot of the point is split at y = 0 into two quads that share no vertex:
+    the y < 0 half is seen (radiance W), the y > 0 half unseen (NaN, filled with W from its
+    nearest seen vertex). Each half takes half of the wall's rays, so S_ind = W / 4 (seen,
+    unattenuated) + W / (3 pi) (unseen, attenuated); with every vertex seen it is W / 2, the
+    value without attenuation.
+    """
+    left = quad([[0.01, -500, -1], [0.01, 0, -1], [0.01, 0, 200], [0.01, -500, 200]])
+    right = quad([[0.01, 0, -1], [0.01, 500, -1], [0.01, 500, 200], [0.01, 0, 200]])
+    tracer = Tracer(mesh_proxy(*merge(left, right)))
+    L, W = np.array([0.2, 0.4, 0.8]), np.array([0.6, 0.5, 0.4])
+    radiance = np.tile(W, (8, 1))
+    points, normals = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    kwargs = dict(n_rays=MC_RAYS, ray_offset=0.0, attenuation="unseen", rng=0)
+    _, ind = environment_shading(points, normals, tracer, uniform_sky(L), radiance, **kwargs)
+    np.testing.assert_allclose(ind[0], W / 2, rtol=MC_TOL)
+    radiance[4:] = np.nan
+    _, ind = environment_shading(points, normals, tracer, uniform_sky(L), radiance, **kwargs)
+    np.testing.assert_allclose(ind[0], W / 4 + W / (3 * math.pi), rtol=MC_TOL)
+
+
+def test_attenuation_modes_are_validated():
+    assert Step1Config(indirect_attenuation=True).indirect_attenuation == "all"
+    assert Step1Config(indirect_attenuation=False).indirect_attenuation == "none"
+    assert Step1Config().indirect_attenuation == "all"  # the paper's
+    with pytest.raises(ValueError, match="indirect_attenuation must be one of"):
+        Step1Config(indirect_attenuation="some")
+
+
 def test_box_on_plane_casts_the_exact_shadow_footprint():
     """~v on a grid of ground points equals the analytic shadow of a box (slab test)."""
     lo, hi = np.array([-1.0, -1.0, 0.0]), np.array([1.0, 1.0, 2.0])

@@ -8,7 +8,10 @@ street seed 0, 8 views 240x180, 128 spp, sun drawn from the seed). For each scen
 
 * ``S_env = S_sky + S_ind`` against ``gt/env_shading`` in GT-shadowed pixels (median relative
   error per channel, both sides averaged over 5x5 masked windows against render noise,
-  ``mvintrinsic.evaluation.env_shading_error``) and its signed median (bias);
+  ``mvintrinsic.evaluation.env_shading_error``) and its signed median (bias); the same in the
+  umbra only (``env_umbra``: no part of the sun's disc reaches the pixel,
+  ``mvintrinsic.evaluation.umbra_mask``), where the two ground-truth conventions for partial sun
+  agree (``docs/step1.md``);
 * the proxy sun visibility ``~v`` against ``gt/sun_visibility`` (balanced error rate);
 * the fitted sky against Mitsuba's Hosek-Wilkie sky (the renderer's, turbidity from
   ``gt/scene_info.json``) over the sky texels the views saw, and over the whole upper hemisphere
@@ -27,6 +30,7 @@ and Step 1 carries its quantities on vertices.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -38,7 +42,7 @@ import numpy as np
 
 import mvintrinsic
 from mvintrinsic import Scene
-from mvintrinsic.evaluation import env_shading_error, visibility_error
+from mvintrinsic.evaluation import env_shading_error, umbra_mask, visibility_error
 from mvintrinsic.io import load_scene, read_proxy, write_json
 from mvintrinsic.raytrace import (
     Step1Config,
@@ -89,6 +93,11 @@ def relative_rmse(a: np.ndarray, b: np.ndarray, w: np.ndarray) -> float:
     return float(np.sqrt((w[:, None] * (a - b) ** 2).sum() / (w[:, None] * b**2).sum()))
 
 
+@functools.cache
+def umbra_of(folder: Path) -> dict:
+    return umbra_mask(folder)
+
+
 def evaluate(folder: Path, scene: Scene, config: Step1Config) -> dict:
     start = time.perf_counter()
     result = step1(scene, config=config, rng=0)
@@ -103,6 +112,7 @@ def evaluate(folder: Path, scene: Scene, config: Step1Config) -> dict:
         "turbidity": result.sky_model.turbidity,
         "sky_texels": result.sky_model.n_texels,
         "env_shadow": env_shading_error(folder, env, region="shadow"),
+        "env_umbra": env_shading_error(folder, env, region="umbra", umbra=umbra_of(folder)),
         "env_lit": env_shading_error(folder, env, region="lit"),
         "visibility": visibility_error(folder, vis),
     }
@@ -165,7 +175,8 @@ def main() -> None:
                                       replace(config, indirect_attenuation=attenuation))
             print(f"{name:14s} {key:24s} {e['vertices']:8d} v  S_env shadow err "
                   f"{np.round(e['env_shadow']['median_rel_error'], 3)} signed "
-                  f"{np.round(e['env_shadow']['median_signed_rel_error'], 3)} (true sky "
+                  f"{np.round(e['env_shadow']['median_signed_rel_error'], 3)} umbra "
+                  f"{np.round(e['env_umbra']['median_rel_error'], 3)} (true sky "
                   f"{np.round(e.get('env_shadow_true_sky', {}).get('median_rel_error', [np.nan] * 3), 3)})  "
                   f"BER {e['visibility']['ber']:.3f}  sky rmse seen {e.get('sky_rel_rmse_seen', np.nan):.3f} "
                   f"hemi {e.get('sky_rel_rmse_hemisphere', np.nan):.3f}  {e['seconds']:.1f} s", flush=True)

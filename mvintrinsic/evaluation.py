@@ -58,11 +58,13 @@ __all__ = [
     "METRIC_KEYS",
     "PSNR_MAX_DB",
     "REFLECTANCE_MIN",
+    "SUN_APERTURE_DEG",
     "GroundTruth",
     "evaluate",
     "ground_truth_decomposition",
     "read_ground_truth",
     "read_ground_truth_lighting",
+    "umbra_mask",
 ]
 
 #: Pixels whose true reflectance is at or below this value in any channel are not scored: the true
@@ -690,12 +692,111 @@ ENV_SMOOTHING_WINDOW = 5
 ENV_MIN = 1e-4
 
 
+#: Full angle (degrees) of the sun's disc for :func:`umbra_mask`: Mitsuba's ``sunsky`` default,
+#: which the synthetic scenes are rendered with (the real sun subtends about 0.53 degrees).
+SUN_APERTURE_DEG = 0.5358
+
+
+def umbra_mask(
+    scene_folder: os.PathLike | str,
+    *,
+    views: Sequence[str] | None = None,
+    samples: int = 16,
+    aperture_deg: float = SUN_APERTURE_DEG,
+    seed: int = 0,
+) -> dict[str, np.ndarray]:
+    """Pixels that no part of the sun's disc reaches (the umbra), from the exact mesh.
+
+    ``gt/sun_visibility`` is the pixel-centre ray toward the sun's centre. Where sunlight
+    reaches a "shadowed" pixel in part (a penumbra, gaps between leaves smaller than a pixel),
+    ground-truth generators split the shading differently: a render of the sun alone puts that
+    light in ``gt/sun_shading``, an analytic ``L_sun cos(w) v`` with the binary visibility
+    leaves it in ``gt/env_shading`` (``docs/step1.md``). In the umbra both agree.
+
+    Per pixel, ``samples`` rays through jittered positions in the pixel hit ``gt/mesh.ply``; from
+    each hit a shadow ray toward a jittered point of the sun's disc (uniform over the disc of
+    full angle ``aperture_deg``) is cast. A pixel is umbra when its ray hits the mesh every time
+    and every shadow ray is blocked or starts on a surface facing away from the sun.
+
+    Parameters
+    ----------
+    scene_folder : path-like
+        Scene with ``gt/mesh.ply``, cameras and a ground-truth sun (``gt/lighting.json`` or
+        ``scene.json``).
+    views : sequence of str, optional
+        Stems; default every view of the scene.
+    samples : int
+        Rays per pixel.
+    aperture_deg : float
+        Full angle of the sun's disc, degrees.
+    seed : int
+        Seed of the jitter.
+
+    Returns
+    -------
+    dict of str to (H, W) bool
+        By stem.
+
+    Raises
+    ------
+    SceneError
+        ``gt/mesh.ply`` missing, or no ground-truth sun direction (only clicks).
+    """
+    from .io import load_scene, read_proxy
+    from .raytrace import Tracer
+
+    if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
+        raise ValueError(f"samples must be a positive integer, got {samples!r}")
+    if not 0 <= aperture_deg < 10:
+        raise ValueError(f"aperture_deg must be in [0, 10) degrees, got {aperture_deg!r}")
+    root = Path(scene_folder)
+    mesh_file = _gt_folder(root) / "mesh.ply"
+    if not mesh_file.is_file():
+        raise SceneError(mesh_file, "missing: the umbra needs the exact mesh")
+    sun, _ = _gt_sun(root)
+    if sun is None:
+        raise SceneError(root / "scene.json", "gives the sun by clicks only: the umbra needs its true direction")
+    scene = load_scene(root, views=views)
+    tracer = Tracer(read_proxy(mesh_file))
+    centre = sun.direction
+    t1 = np.cross(centre, [1.0, 0.0, 0.0] if abs(centre[0]) < 0.9 else [0.0, 1.0, 0.0])
+    t1 /= np.linalg.norm(t1)
+    t2 = np.cross(centre, t1)
+    radius = math.tan(math.radians(aperture_deg) / 2.0)
+    gen = np.random.default_rng(seed)
+    out = {}
+    for view in scene.views:
+        camera = view.camera
+        lit_any = np.zeros(camera.height * camera.width, dtype=bool)
+        rows, cols = np.mgrid[0:camera.height, 0:camera.width]
+        for _ in range(samples):
+            jitter = gen.random((rows.size, 2))
+            pixels = np.stack([cols.ravel() + jitter[:, 0], rows.ravel() + jitter[:, 1]], axis=1)
+            rays = camera.pixel_rays(pixels)
+            hits = tracer.intersect(camera.center, rays)
+            lit_any |= ~hits.hit  # a sample on the sky: not umbra
+            idx = np.flatnonzero(hits.hit)
+            normals = hits.normals[idx]
+            normals = np.where((np.einsum("ij,ij->i", normals, rays[idx]) > 0)[:, None], -normals, normals)
+            r = radius * np.sqrt(gen.random(len(idx)))
+            a = 2.0 * np.pi * gen.random(len(idx))
+            toward = centre + r[:, None] * (np.cos(a)[:, None] * t1 + np.sin(a)[:, None] * t2)
+            toward /= np.linalg.norm(toward, axis=1, keepdims=True)
+            facing = np.einsum("ij,ij->i", normals, toward) > 0
+            f = np.flatnonzero(facing)
+            origins = hits.points[idx[f]] + 1e-3 * normals[f]
+            lit_any[idx[f]] |= ~tracer.occluded(origins, toward[f])
+        out[view.stem] = ~lit_any.reshape(camera.height, camera.width)
+    return out
+
+
 def env_shading_error(
     scene_folder: os.PathLike | str,
     estimates: Mapping[str, np.ndarray],
     *,
     region: str = "shadow",
     window: int = ENV_SMOOTHING_WINDOW,
+    umbra: Mapping[str, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Relative error of per-pixel environment shading ``S_sky + S_ind`` against ``gt/env_shading``.
 
@@ -706,13 +807,17 @@ def env_shading_error(
         ``gt/reflectance``.
     estimates : mapping of str to (H, W, 3) array
         Estimated ``S_env`` per view stem (NaN where there is no estimate, e.g. off the proxy).
-    region : {"shadow", "lit", "all"}
+    region : {"shadow", "umbra", "lit", "all"}
         Pixels compared: GT-shadowed (``gt/sun_visibility == 0``: there the shading is ``S_env``
-        alone), lit, or both; always excluding sky, pixels with GT reflectance below
-        :data:`REFLECTANCE_MIN`, GT ``S_env`` below :data:`ENV_MIN` and pixels without estimate.
+        alone), GT-shadowed and in the umbra (:func:`umbra_mask`: no part of the sun's disc
+        reaches them, so the ground-truth convention for partial sun does not matter), lit, or
+        all; always excluding sky, pixels with GT reflectance below :data:`REFLECTANCE_MIN`, GT
+        ``S_env`` below :data:`ENV_MIN` and pixels without estimate.
     window : int
         Both sides are averaged over the region's pixels in ``window x window`` neighbourhoods
         before comparing (:data:`ENV_SMOOTHING_WINDOW`: the render noise); 1 compares raw pixels.
+    umbra : mapping of str to (H, W) bool, optional
+        :func:`umbra_mask` of the views, for ``region="umbra"``; computed when not given.
 
     Returns
     -------
@@ -720,9 +825,11 @@ def env_shading_error(
         ``median_rel_error`` and ``p90_rel_error`` (per channel, over all pixels of all views),
         ``median_signed_rel_error`` (bias), ``pixels`` and ``per_view`` medians.
     """
-    if region not in ("shadow", "lit", "all"):
-        raise ValueError(f"region must be 'shadow', 'lit' or 'all', got {region!r}")
+    if region not in ("shadow", "umbra", "lit", "all"):
+        raise ValueError(f"region must be 'shadow', 'umbra', 'lit' or 'all', got {region!r}")
     gt = read_ground_truth(scene_folder, views=list(estimates))
+    if region == "umbra" and umbra is None:
+        umbra = umbra_mask(scene_folder, views=list(estimates))
     errors, per_view = [], {}
     for stem, estimate in estimates.items():
         truth = gt[stem]
@@ -735,6 +842,10 @@ def env_shading_error(
         ok = truth.valid & np.isfinite(estimate).all(axis=2) & (env > ENV_MIN).all(axis=2)
         if region == "shadow":
             ok &= ~truth.sun_visibility
+        elif region == "umbra":
+            if stem not in umbra or np.shape(umbra[stem]) != ok.shape:
+                raise ValueError(f"umbra must hold an {ok.shape} mask for view {stem!r}")
+            ok &= ~truth.sun_visibility & np.asarray(umbra[stem], dtype=bool)
         elif region == "lit":
             ok &= truth.sun_visibility
         if not ok.any():

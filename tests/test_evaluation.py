@@ -251,3 +251,29 @@ def test_env_shading_and_visibility_errors_on_known_estimates():
     assert visibility_error(folder, {s: np.ones(v.shape) for s, v in visibility.items()})["ber"] == 0.5
     with pytest.raises(ValueError, match="region"):
         env_shading_error(folder, exact, region="dusk")
+
+
+def test_umbra_is_the_shadow_no_part_of_the_sun_reaches():
+    """The umbra lies inside the GT shadow and is smaller than it where shadows are dappled or
+    soft; where the sun is a point (aperture 0) and rays go through pixel centres only its
+    difference from the shadow is the pixel-centre jitter; the S_env error there is scored."""
+    from mvintrinsic.cli import demo_scene_path
+    from mvintrinsic.evaluation import env_shading_error, read_ground_truth, umbra_mask
+
+    folder = demo_scene_path()
+    stems = ["view_000"]
+    gt = read_ground_truth(folder, views=stems)["view_000"]
+    shadow = ~gt.sun_visibility & gt.valid  # not the sky
+    umbra = umbra_mask(folder, views=stems)["view_000"]
+    assert umbra.shape == shadow.shape and umbra.dtype == bool
+    assert (umbra & shadow).sum() >= 0.99 * umbra.sum()  # inside the shadow (up to the pixel jitter)
+    assert 0.1 * shadow.sum() < umbra.sum() < 0.9 * shadow.sum()  # the tree's dappled shadow is no umbra
+    point_sun = umbra_mask(folder, views=stems, samples=1, aperture_deg=0.0)["view_000"]
+    assert (point_sun & ~umbra).sum() > 0.2 * umbra.sum()  # one ray per pixel finds more "umbra"
+    assert umbra_mask(folder, views=stems, seed=3)["view_000"].sum() == pytest.approx(umbra.sum(), rel=0.05)
+    truth = gt.env_shading
+    scored = env_shading_error(folder, {"view_000": 1.2 * truth}, region="umbra")
+    np.testing.assert_allclose(scored["median_rel_error"], 0.2, rtol=1e-5)
+    assert scored["pixels"] <= env_shading_error(folder, {"view_000": truth}, region="shadow")["pixels"]
+    with pytest.raises(ValueError, match="samples"):
+        umbra_mask(folder, views=stems, samples=0)

@@ -2,18 +2,10 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
-
-BASELINES = Path(__file__).resolve().parents[1] / "benchmarks" / "baselines"
-if str(BASELINES) not in sys.path:
-    sys.path.insert(0, str(BASELINES))
-
-import retinex  # noqa: E402  (benchmarks/baselines is not a package on the path)
-from retinex import color_retinex, poisson_integrate, reflectance_edges  # noqa: E402
+import retinex  # benchmarks/baselines, on the path through pyproject's [tool.pytest.ini_options] pythonpath
+from retinex import color_retinex, poisson_integrate, reflectance_edges
 
 H, W = 60, 80
 

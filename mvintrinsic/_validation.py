@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["as_array", "as_unit_vector", "describe"]
+__all__ = ["as_array", "as_unit_vector", "describe", "is_real"]
 
 
 def describe(value: object) -> str:
@@ -16,6 +16,11 @@ def describe(value: object) -> str:
     if isinstance(value, np.ndarray):
         return f"array of shape {value.shape} and dtype {value.dtype}"
     return f"{type(value).__name__} {value!r}"[:120]
+
+
+def is_real(value: object) -> bool:
+    """Whether ``value`` is a real scalar (Python or NumPy int or float), bools excluded."""
+    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 def as_array(

@@ -744,6 +744,7 @@ def umbra_mask(
     """
     from .io import load_scene, read_proxy
     from .raytrace import Tracer
+    from .skymodel import horizontal_frame
 
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive integer, got {samples!r}")
@@ -759,9 +760,8 @@ def umbra_mask(
     scene = load_scene(root, views=views)
     tracer = Tracer(read_proxy(mesh_file))
     centre = sun.direction
-    t1 = np.cross(centre, [1.0, 0.0, 0.0] if abs(centre[0]) < 0.9 else [0.0, 1.0, 0.0])
-    t1 /= np.linalg.norm(t1)
-    t2 = np.cross(centre, t1)
+    frame = horizontal_frame(centre)  # any orthonormal pair across the sun's direction
+    t1, t2 = frame[1], -frame[0]
     radius = math.tan(math.radians(aperture_deg) / 2.0)
     gen = np.random.default_rng(seed)
     out = {}
@@ -776,8 +776,7 @@ def umbra_mask(
             hits = tracer.intersect(camera.center, rays)
             lit_any |= ~hits.hit  # a sample on the sky: not umbra
             idx = np.flatnonzero(hits.hit)
-            normals = hits.normals[idx]
-            normals = np.where((np.einsum("ij,ij->i", normals, rays[idx]) > 0)[:, None], -normals, normals)
+            normals = hits.normals[idx]  # facing the camera (Tracer.intersect)
             r = radius * np.sqrt(gen.random(len(idx)))
             a = 2.0 * np.pi * gen.random(len(idx))
             toward = centre + r[:, None] * (np.cos(a)[:, None] * t1 + np.sin(a)[:, None] * t2)

@@ -118,8 +118,8 @@ import scipy.sparse as sp
 from scipy import ndimage
 from scipy.sparse import linalg as spla
 
-from ._validation import as_array, describe
-from .pixels import SHADING_FLOOR, PixelQuantities, layers_from_shading
+from ._validation import as_array, describe, is_real
+from .pixels import SHADING_FLOOR, PixelQuantities, layers_from_shading, nearest_fill
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import View
 from .segmentation import boundary_band
@@ -230,18 +230,14 @@ class MattingConfig:
             value = getattr(self, name)
             if name == "constraint_weight" and value is None:
                 continue
-            if not _is_real(value) or not 0 < value < np.inf:
+            if not is_real(value) or not 0 < value < np.inf:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if not _is_real(self.white_percentile) or not 0 < self.white_percentile <= 100:
+        if not is_real(self.white_percentile) or not 0 < self.white_percentile <= 100:
             raise ValueError(f"white_percentile must lie in (0, 100], got {self.white_percentile!r}")
         if not self.rtol < 1:
             raise ValueError(f"rtol must be below 1, got {self.rtol!r}")
         if not self.shading_floor < 1:
             raise ValueError(f"shading_floor must be below 1, got {self.shading_floor!r}")
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 # --------------------------------------------------------------------------------------------
@@ -347,14 +343,6 @@ def _near(seed: np.ndarray, radius: int) -> np.ndarray:
     return ndimage.distance_transform_edt(~seed) < radius
 
 
-def _nearest(values: np.ndarray, known: np.ndarray) -> np.ndarray:
-    """``values`` of the nearest ``known`` pixel, everywhere (Euclidean distance in the image)."""
-    if known.all():
-        return values.copy()
-    _, (rows, cols) = ndimage.distance_transform_edt(~known, return_indices=True)
-    return values[rows, cols]
-
-
 # --------------------------------------------------------------------------------------------
 # The matting Laplacian and the solvers
 # --------------------------------------------------------------------------------------------
@@ -379,9 +367,9 @@ def guide_image(image: np.ndarray, *, mask: np.ndarray | None = None, white_perc
     """
     image = _check_image(image)
     valid = _check_mask(mask, image.shape[:2], image)
-    if not _is_real(white_percentile) or not 0 < white_percentile <= 100:
+    if not is_real(white_percentile) or not 0 < white_percentile <= 100:
         raise ValueError(f"white_percentile must lie in (0, 100], got {white_percentile!r}")
-    rgb = np.where(valid[..., None], np.maximum(np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0), 0.0)
+    rgb = np.where(valid[..., None], np.maximum(image, 0.0), 0.0)  # finite on the mask (checked above)
     white = float(np.percentile(rgb[valid].max(axis=-1), white_percentile)) if valid.any() else 0.0
     return np.ascontiguousarray(np.minimum(rgb / (white if white > 0 else 1.0), 1.0), dtype=np.float64)
 
@@ -610,7 +598,7 @@ def _propagate(laplacian: _GuidedLaplacian, values: np.ndarray, known: np.ndarra
     known = known & mask & ~band
     if not known.any():
         raise ValueError(f"{what}: no constraint pixel inside the mask and outside the band")
-    fallback = _nearest(np.where(known[..., None], out, 0.0), known).reshape(h * w, channels)
+    fallback = nearest_fill(np.where(known[..., None], out, 0.0), known).reshape(h * w, channels)
     free = mask & ~band
     flat = out.reshape(h * w, channels)
     guess = fallback if start is None else np.asarray(start, dtype=np.float64).reshape(h * w, channels)
@@ -662,7 +650,7 @@ def _matte(laplacian: _GuidedLaplacian, labels: np.ndarray, mask: np.ndarray, cl
     """Closed-form matte of ``v_sun`` (float64, 0 outside ``mask``) from the label trimap."""
     unknown = _trimap_unknown(labels, mask, config.trimap_radius)
     if clusters is not None and config.visibility_cluster_width > 0:
-        unknown |= boundary_band(np.where(mask, clusters, -1), config.visibility_cluster_width) & (labels != _UNDECIDED)
+        unknown |= boundary_band(np.where(mask, clusters, -1), config.visibility_cluster_width)
     known = mask & ~unknown
     visibility = np.where(mask & (labels == _LIT), 1.0, 0.0)
     if not unknown.any():
@@ -670,7 +658,7 @@ def _matte(laplacian: _GuidedLaplacian, labels: np.ndarray, mask: np.ndarray, cl
     if not known.any():
         logger.warning("sun visibility matting: no labelled pixel outside the trimap band; keeping the labels")
         return np.where(mask & (labels == _UNDECIDED), 0.5, visibility)
-    fallback = _nearest(visibility, known).ravel()
+    fallback = nearest_fill(visibility, known).ravel()
     u, k = np.flatnonzero(unknown), np.flatnonzero(known)
     rows = laplacian.inside(mask)[u]
     # Levin et al. with the known pixels as Dirichlet values (as pymatting's estimate_alpha_cf):

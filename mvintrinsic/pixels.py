@@ -33,7 +33,7 @@ from .scene import View
 #: ``R = I / S_tot`` stays finite (a pixel the proxy says receives no light at all).
 SHADING_FLOOR = 1e-3
 
-__all__ = ["SHADING_FLOOR", "PixelQuantities", "layers_from_shading", "masked_box_mean", "pixel_quantities"]
+__all__ = ["SHADING_FLOOR", "PixelQuantities", "layers_from_shading", "masked_box_mean", "nearest_fill", "pixel_quantities"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -138,14 +138,13 @@ def pixel_quantities(view: View, step1_result: Step1Result, tracer: Tracer, *, s
     if filled.any():
         if not covered.any():
             raise ValueError(f"view {view.stem!r}: no pixel sees the proxy, nothing to carry into the view")
-        _, (rows, cols) = ndimage.distance_transform_edt(~covered, return_indices=True)
-        values[filled] = values[rows[filled], cols[filled]]
+        values[filled] = nearest_fill(values, covered)[filled]
 
     values[~valid] = 0.0
     normals = values[..., 7:10]
     length = np.linalg.norm(normals, axis=-1, keepdims=True)
     normals = np.divide(normals, length, out=np.zeros_like(normals), where=length > 0)
-    cosine = np.where(valid, clamped_cosine(normals, sun_direction), 0.0)
+    cosine = clamped_cosine(normals, sun_direction)  # max(0, cos w_sun) of Eq. 1; normals are 0 off valid
     visibility = np.where(valid, np.clip(values[..., 6], 0.0, 1.0), 1.0)
     return PixelQuantities(
         stem=view.stem,
@@ -159,6 +158,15 @@ def pixel_quantities(view: View, step1_result: Step1Result, tracer: Tracer, *, s
         filled=filled,
         valid=valid,
     )
+
+
+def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:
+    """``values (H, W, ...)`` of the nearest ``known`` pixel, everywhere (Euclidean distance in
+    the image); a copy. ``known (H, W)`` bool must hold at least one pixel."""
+    if known.all():
+        return values.copy()
+    _, (rows, cols) = ndimage.distance_transform_edt(~known, return_indices=True)
+    return values[rows, cols]
 
 
 def masked_box_mean(values: np.ndarray, mask: np.ndarray, window: int) -> np.ndarray:

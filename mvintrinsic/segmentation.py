@@ -108,7 +108,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ._validation import as_array, describe
+from ._validation import as_array, describe, is_real
 from .image_model import LUMINANCE_WEIGHTS
 
 __all__ = [
@@ -191,18 +191,14 @@ class SegmentationConfig:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
         for name in ("color_bandwidth", "slic_compactness"):
             value = getattr(self, name)
-            if not _is_real(value) or not 0 < value < np.inf:
+            if not is_real(value) or not 0 < value < np.inf:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if not _is_real(self.slic_mean_area) or not 1 <= self.slic_mean_area < np.inf:
+        if not is_real(self.slic_mean_area) or not 1 <= self.slic_mean_area < np.inf:
             raise ValueError(f"slic_mean_area must be a finite number >= 1 pixel, got {self.slic_mean_area!r}")
-        if not _is_real(self.fusion_tolerance) or not 0 < self.fusion_tolerance <= 2:
+        if not is_real(self.fusion_tolerance) or not 0 < self.fusion_tolerance <= 2:
             raise ValueError(f"fusion_tolerance must lie in (0, 2], got {self.fusion_tolerance!r}")
-        if not _is_real(self.white_percentile) or not 0 < self.white_percentile <= 100:
+        if not is_real(self.white_percentile) or not 0 < self.white_percentile <= 100:
             raise ValueError(f"white_percentile must lie in (0, 100], got {self.white_percentile!r}")
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True, eq=False)
@@ -494,7 +490,7 @@ def perceptual_lab(image: np.ndarray, *, mask: np.ndarray | None = None, white_p
     """
     image = as_array(image, "image", shape=(None, None, 3), dtype=np.float32, finite=False)
     valid = np.ones(image.shape[:2], dtype=bool) if mask is None else _as_mask(mask, "mask", image.shape[:2])
-    if not _is_real(white_percentile) or not 0 < white_percentile <= 100:
+    if not is_real(white_percentile) or not 0 < white_percentile <= 100:
         raise ValueError(f"white_percentile must lie in (0, 100], got {white_percentile!r}")
     bad = valid & ~np.isfinite(image).all(axis=2)
     if bad.any():

@@ -146,7 +146,7 @@ from types import MappingProxyType
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._validation import as_array, describe
+from ._validation import as_array, describe, is_real
 from .image_model import reflectance, sun_shading
 from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
@@ -189,10 +189,6 @@ TIE_BREAKS = ("proxy", "lit", "shadow")
 
 #: Reflectances below this are raised to it before the logarithm of ``distance="log"``.
 LOG_FLOOR = 1e-3
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -272,7 +268,7 @@ class ShadowConfig:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
         for name in ("l_1", "l_0", "l_p", "l_np", "l_eq"):
             value = getattr(self, name)
-            if not _is_real(value) or not np.isfinite(value):
+            if not is_real(value) or not np.isfinite(value):
                 raise ValueError(f"{name} must be a finite number, got {value!r}")
         if not self.l_0 <= self.l_1:
             raise ValueError(f"l_0 must be <= l_1 (Eq. 14 must stay submodular), got l_0={self.l_0!r}, "
@@ -282,15 +278,15 @@ class ShadowConfig:
                              f"l_p={self.l_p!r}")
         if self.distance not in DISTANCES:
             raise ValueError(f"distance must be one of {list(DISTANCES)}, got {self.distance!r}")
-        if not _is_real(self.tau_1) or not 0 < self.tau_1 < 0.5:
+        if not is_real(self.tau_1) or not 0 < self.tau_1 < 0.5:
             raise ValueError(f"tau_1 must lie in (0, 0.5), got {self.tau_1!r}")
-        if not _is_real(self.tau_c) or not 0 < self.tau_c <= 1:
+        if not is_real(self.tau_c) or not 0 < self.tau_c <= 1:
             raise ValueError(f"tau_c must lie in (0, 1], got {self.tau_c!r}")
-        if not _is_real(self.local_radius) or not 0 <= self.local_radius < np.inf:
+        if not is_real(self.local_radius) or not 0 <= self.local_radius < np.inf:
             raise ValueError(f"local_radius must be a finite number >= 0, got {self.local_radius!r}")
         if self.tie_break not in TIE_BREAKS:
             raise ValueError(f"tie_break must be one of {list(TIE_BREAKS)}, got {self.tie_break!r}")
-        if not _is_real(self.tie_break_weight) or not 0 < self.tie_break_weight < np.inf:
+        if not is_real(self.tie_break_weight) or not 0 < self.tie_break_weight < np.inf:
             raise ValueError(f"tie_break_weight must be a positive finite number, got {self.tie_break_weight!r}")
 
 
@@ -554,7 +550,7 @@ def cluster_reflectances(
     finite = np.isfinite(r0).all(axis=1) & np.isfinite(r1).all(axis=1)
     rows, cols, r0, r1 = rows[finite], cols[finite], r0[finite], r1[finite]
     cluster = labels[rows, cols].astype(np.int64)
-    interior = ~segmentation.band(config.boundary_band)[rows, cols] if config.boundary_band else np.ones(len(rows), bool)
+    interior = ~segmentation.band(config.boundary_band)[rows, cols]  # width 0: no band
     n_interior = np.bincount(cluster[interior], minlength=n)
     small = n_interior < config.min_interior
     use = interior | small[cluster]
@@ -573,10 +569,8 @@ def _group_median(groups: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
         return out
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])[present]
     c = counts[present]
-    by_group = np.argsort(groups, kind="stable")
-    groups = groups[by_group]
     for channel in range(values.shape[1]):
-        column = values[by_group, channel]
+        column = values[:, channel]
         # One sort on (group, value): the value mapped into [0, 1/2) and added to the group id.
         low, high = column.min(), column.max()
         key = groups + 0.5 * (column - low) / max(high - low, np.finfo(np.float64).tiny)
@@ -591,8 +585,8 @@ def lab_histograms(image: np.ndarray, segmentation: Segmentation, *, bins: int =
     Parameters
     ----------
     image : (H, W, 3) array_like
-        Linear RGB; made perceptual as for the segmentation
-        (:func:`mvintrinsic.segmentation.perceptual_lab`).
+        Linear RGB; made perceptual by :func:`mvintrinsic.segmentation.perceptual_lab` with its
+        default white point (the segmentation's default too).
     segmentation : Segmentation
     bins : int
         Bins per channel over the 0.5-99.5 percentiles of the valid pixels (values outside go to
@@ -671,7 +665,7 @@ def _unary_terms(r0: np.ndarray, r1: np.ndarray, centroids: np.ndarray, radius: 
     """Unary costs (n, 2) and the rule of each (Eqs. 8-13)."""
     n = len(r0)
     rule = np.full(n, UNARY_RULES.index("no_samples"), dtype=np.int8)
-    unary = np.full((n, 2), config.l_eq)
+    unary = np.full((n, 2), config.l_eq)                                   # Eq. 13 unless decided
     have = np.flatnonzero(np.isfinite(r0).all(axis=1))
     rule[have] = UNARY_RULES.index("equal")
     m = len(have)
@@ -707,7 +701,7 @@ def _unary_terms(r0: np.ndarray, r1: np.ndarray, centroids: np.ndarray, radius: 
                               (local_lit, "local_lit", LIT)):
         index = have[mask]
         rule[index] = UNARY_RULES.index(name)
-        unary[index, label] = config.l_0                                   # Eqs. 10, 11
+        unary[index, label] = config.l_0                                   # Eqs. 10, 11 (and 12)
         unary[index, 1 - label] = config.l_1
     return unary, rule
 
@@ -859,8 +853,7 @@ def label_shadows(
 
     start = time.perf_counter()
     rows, cols = np.indices(shape)
-    centroids = segmentation.means(np.stack([rows, cols], axis=2))
-    centroids = np.nan_to_num(centroids)
+    centroids = segmentation.means(np.stack([rows, cols], axis=2))  # no cluster is empty
     histograms = lab_histograms(image, segmentation, bins=config.histogram_bins)
     adjacency = segmentation.adjacency.astype(np.int64)
     colour = chi2_distance(histograms[adjacency[:, 0]], histograms[adjacency[:, 1]])

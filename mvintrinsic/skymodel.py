@@ -52,7 +52,7 @@ import scipy.sparse
 import scipy.sparse.linalg
 
 from ._validation import as_array, as_unit_vector, describe
-from .image_model import LUMINANCE_WEIGHTS
+from .image_model import luminance
 from .results import SkyParameters
 from .scene import View
 
@@ -668,11 +668,11 @@ def detect_sky(
         return sky
     rgb = partial.radiance[candidates].astype(np.float64)
     total = rgb.sum(axis=1)
-    luminance = rgb @ LUMINANCE_WEIGHTS
-    reference = float(np.percentile(luminance, config.sky_luminance_percentile))
+    brightness = luminance(rgb)
+    reference = float(np.percentile(brightness, config.sky_luminance_percentile))
     with np.errstate(divide="ignore", invalid="ignore"):
         blue = np.where(total > 0, rgb[:, 2] / total, 0.0)
-    is_sky = (blue >= config.sky_blue_min) & (luminance >= config.sky_luminance_min * reference) & (luminance > 0)
+    is_sky = (blue >= config.sky_blue_min) & (brightness >= config.sky_luminance_min * reference) & (brightness > 0)
     sky[candidates] = is_sky
     return sky
 

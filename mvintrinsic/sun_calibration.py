@@ -37,7 +37,7 @@ import numpy as np
 from scipy import ndimage
 
 from .image_model import luminance, sun_radiance_from_pair
-from .pixels import PixelQuantities, masked_box_mean
+from .pixels import PixelQuantities, masked_box_mean, nearest_fill
 from .scene import View
 
 __all__ = [
@@ -312,11 +312,9 @@ def discontinuity_edges(quantities: PixelQuantities, *, config: SunConfig | None
     """
     config = config or SunConfig()
     covered = np.isfinite(quantities.depth)
-    depth = np.where(covered, quantities.depth, np.nan).astype(np.float64)
-    log_depth = np.log(np.maximum(depth, 1e-6))
+    log_depth = np.log(np.maximum(quantities.depth.astype(np.float64), 1e-6))  # inf off the proxy
     if covered.any():
-        _, (rows, cols) = ndimage.distance_transform_edt(~covered, return_indices=True)
-        log_depth = log_depth[rows, cols]
+        log_depth = nearest_fill(log_depth, covered)
     else:
         log_depth = np.zeros(covered.shape)
 
@@ -465,7 +463,7 @@ def find_sun_pairs(view: View, quantities: PixelQuantities, *, config: SunConfig
     lit_px = lit_rc[keep, i_lit]
     sh_px = sh_rc[keep, i_sh]
     env = quantities.env.astype(np.float64)
-    estimates = sun_radiance_from_pair(
+    estimates = sun_radiance_from_pair(  # Eq. 5 with v = 1 at the lit pixel, 0 at the shadowed one
         image[lit_px[:, 0], lit_px[:, 1]], image[sh_px[:, 0], sh_px[:, 1]],
         env[lit_px[:, 0], lit_px[:, 1]], env[sh_px[:, 0], sh_px[:, 1]],
         np.ones(len(keep)), np.zeros(len(keep)),

@@ -17,7 +17,9 @@ Per view (:func:`find_sun_pairs`, independent across views):
    first: a deviation, against noise, see :class:`SunConfig`);
 5. a sample is rejected when no such pixel pair exists, when the segment between the two picked
    pixels crosses a depth or normal discontinuity (Canny edges of the proxy's depth and normal maps
-   in the view), or when Eq. 5 has no positive, finite solution;
+   in the view), or when Eq. 5 has no positive, finite solution (the paper rejects a walk that
+   crosses a discontinuity anywhere; testing only the stretch between the picked pixels is a
+   deviation: beyond them a discontinuity cannot make the pair straddle two surfaces);
 6. each surviving pair gives ``L_sun`` by Eq. 5 with the per-pixel ``S_sky``, ``S_ind`` and
    ``cos omega_sun`` (``v = 1`` at the lit pixel, ``v = 0`` at the shadowed one).
 

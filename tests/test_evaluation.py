@@ -277,3 +277,38 @@ def test_umbra_is_the_shadow_no_part_of_the_sun_reaches():
     assert scored["pixels"] <= env_shading_error(folder, {"view_000": truth}, region="shadow")["pixels"]
     with pytest.raises(ValueError, match="samples"):
         umbra_mask(folder, views=stems, samples=0)
+
+
+def _load_benchmark(name: str):
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_error_by_material_splits_the_ber_by_material(dev_courtyard, gt_decomposition, truth, tmp_path, capsys):
+    """Ground truth: no label error, LMSE 0; all lit: every GT shadow pixel is a miss, shared by material."""
+    script = _load_benchmark("error_by_material")
+    out = tmp_path / "gt.json"
+    gt_folder = mio.save_decomposition(gt_decomposition, tmp_path / "gt")
+    assert script.main([str(dev_courtyard), str(gt_folder), "--out", str(out)]) == 0
+    exact = json.loads(out.read_text())
+    assert exact["pooled_ber"] == 0.0 and exact["fnr"] == 0.0 and exact["fpr"] == 0.0
+    assert exact["lmse"]["all"]["reflectance"] < EXACT and exact["lmse"]["outside_foliage"]["shading"] < EXACT
+
+    stem = VIEWS[0]
+    lit = np.full(truth[stem].sun_visibility.shape, 255, dtype=np.uint8)
+    all_lit = save_changed(gt_decomposition, tmp_path / "lit", stem, shadow_labels=lit)
+    assert script.main([str(dev_courtyard), str(all_lit), "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    # one view of two lost all its shadows: FNR = its share of the GT shadow, FPR 0
+    shadow = {s: int((~truth[s].sun_visibility & truth[s].valid).sum()) for s in VIEWS}
+    assert report["fpr"] == 0.0
+    assert report["fnr"] == pytest.approx(shadow[stem] / sum(shadow.values()), rel=1e-6)
+    assert sum(row["fn_share"] for row in report["per_material"].values()) == pytest.approx(report["fnr"], rel=1e-9)
+    assert report["pooled_ber"] == pytest.approx(report["fnr"] / 2)
+    assert "paving" in report["per_material"]  # named by the dataset's material table
+    capsys.readouterr()
+    assert script.main([str(dev_courtyard), str(tmp_path / "missing")]) == 2
+    assert "missing" in capsys.readouterr().err

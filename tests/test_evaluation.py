@@ -217,11 +217,17 @@ def test_missing_gt_layer_is_named(dev_courtyard, tmp_path):
 
 
 # -- the command-line script ----------------------------------------------------------------------
+def _load_benchmark(name: str):
+    """Import ``benchmarks/<name>.py`` as a module (the folder is not a package)."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
 def test_cli_gt_as_result(dev_courtyard, tmp_path, capsys):
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "evaluate.py"
-    spec = importlib.util.spec_from_file_location("benchmarks_evaluate", path)
-    script = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(script)
+    script = _load_benchmark("evaluate")
     out = tmp_path / "scores.json"
     argv = [str(dev_courtyard), "--gt-as-result", str(tmp_path / "gt"), "--views", "view_005", "--out", str(out)]
     assert script.main(argv) == 0
@@ -277,14 +283,6 @@ def test_umbra_is_the_shadow_no_part_of_the_sun_reaches():
     assert scored["pixels"] <= env_shading_error(folder, {"view_000": truth}, region="shadow")["pixels"]
     with pytest.raises(ValueError, match="samples"):
         umbra_mask(folder, views=stems, samples=0)
-
-
-def _load_benchmark(name: str):
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
-    spec = importlib.util.spec_from_file_location(f"benchmarks_{name}", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def test_error_by_material_splits_the_ber_by_material(dev_courtyard, gt_decomposition, truth, tmp_path, capsys):

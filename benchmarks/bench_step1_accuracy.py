@@ -1,6 +1,7 @@
 """Step 1 accuracy on several scenes, with the MVS-like proxy and with a clean proxy.
 
     python benchmarks/bench_step1_accuracy.py [--make] [--out benchmarks/results/step1_accuracy.json]
+    python benchmarks/bench_step1_accuracy.py --seeds 4 --out benchmarks/results/step1_seeds.json
 
 Scenes: the embedded demo, ``../shared/datasets/dev_courtyard`` (made by another tool) and two
 synthetic scenes rendered on demand with ``--make`` under ``../data/`` (courtyard seed 1 and
@@ -21,6 +22,10 @@ street seed 0, 8 views 240x180, 128 spp, sun drawn from the seed). For each scen
 * the indirect attenuation factor (``Step1Config.indirect_attenuation``) on every hit (the paper,
   entries ``mvs`` and ``clean``), only on unseen vertices' radiance (``*_unseen_attenuation``),
   and, with the clean proxy, nowhere (``clean_no_attenuation``).
+
+With ``--seeds N`` it runs only the clean proxy, with the paper's attenuation and with
+``"unseen"``, for ray seeds ``0 .. N-1``, and reports the ``S_env`` errors per seed: how much of a
+difference between settings or from the issue's 25% is Monte Carlo noise.
 
 The clean proxy is the scene's ``proxy_clean.ply`` (the exact mesh) subdivided to 20 cm edges
 within 30 m of the cameras (``mvintrinsic.raytrace.subdivide``): its triangles are metres wide
@@ -98,6 +103,33 @@ def umbra_of(folder: Path) -> dict:
     return umbra_mask(folder)
 
 
+def clean_proxy(folder: Path, base: Scene):
+    centers = np.array([v.camera.center for v in base.views])
+    return subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centers.mean(axis=0),
+                     radius=CLEAN_RADIUS)
+
+
+def seed_study(folder: Path, base: Scene, config: Step1Config, seeds: int) -> dict:
+    """``S_env`` errors (GT shadow and umbra) with the clean proxy for ray seeds ``0 .. seeds - 1``."""
+    proxy = clean_proxy(folder, base)
+    scene, tracer = Scene(base.views, proxy, base.sun, base.up), Tracer(proxy)
+    out = {}
+    for attenuation in ("all", "unseen"):
+        rows = []
+        for seed in range(seeds):
+            result = step1(scene, config=replace(config, indirect_attenuation=attenuation), tracer=tracer, rng=seed)
+            env = {v.stem: rasterize(result.shading.env, v.camera, tracer) for v in scene.views}
+            rows.append({"seed": seed,
+                         "env_shadow": env_shading_error(folder, env, region="shadow")["median_rel_error"],
+                         "env_umbra": env_shading_error(folder, env, region="umbra",
+                                                        umbra=umbra_of(folder))["median_rel_error"]})
+            print(f"{folder.name:14s} clean {attenuation:7s} seed {seed}  S_env shadow err "
+                  f"{np.round(rows[-1]['env_shadow'], 3)} umbra {np.round(rows[-1]['env_umbra'], 3)}", flush=True)
+        worst = {k: np.max([r[k] for r in rows], axis=0).tolist() for k in ("env_shadow", "env_umbra")}
+        out[attenuation] = {"runs": rows, "worst": worst}
+    return out
+
+
 def evaluate(folder: Path, scene: Scene, config: Step1Config) -> dict:
     start = time.perf_counter()
     result = step1(scene, config=config, rng=0)
@@ -156,16 +188,26 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--make", action="store_true", help="render the synthetic scenes that are absent")
     parser.add_argument("--out", type=Path, default=None)
+    parser.add_argument("--seeds", type=int, default=None, metavar="N",
+                        help="only the clean proxy, for ray seeds 0 .. N-1 (Monte Carlo spread of S_env's error)")
     args = parser.parse_args()
     config = Step1Config()
     report = {"benchmark": "step1_accuracy", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "config": {"n_rays": config.n_rays, "subsample": config.subsample,
                                                                "ray_offset": config.ray_offset}, "scenes": {}}
+    if args.seeds is not None:
+        if args.seeds < 1:
+            parser.error(f"--seeds must be at least 1, got {args.seeds}")
+        report["benchmark"] = "step1_seeds"
+        for name, folder in scenes(args.make).items():
+            report["scenes"][name] = seed_study(folder, load_scene(folder), config, args.seeds)
+        if args.out is not None:
+            write_json(args.out, report)
+            print(f"wrote {args.out}")
+        return
     for name, folder in scenes(args.make).items():
         base = load_scene(folder)
-        centers = np.array([v.camera.center for v in base.views])
-        clean = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centers.mean(axis=0),
-                          radius=CLEAN_RADIUS)
+        clean = clean_proxy(folder, base)
         entry = {}
         # (entry key, proxy, indirect attenuation): the paper's factor on every hit is the default
         runs = (("mvs", base.proxy, "all"), ("clean", clean, "all"), ("mvs_unseen_attenuation", base.proxy, "unseen"),

@@ -317,8 +317,9 @@ class Step1Config:
         the synthetic ``proxy_clean.ply``); ``"none"`` nowhere. ``True``/``False`` are read as
         ``"all"``/``"none"``. Measured in ``docs/step1.md``: with exact geometry ``"unseen"``
         keeps the shadowed ``S_env`` of all four test scenes within 25%, the paper's ``"all"``
-        of three (in the umbra alone it is the other way round); with MVS proxies ``"all"`` is
-        better on three of the four.
+        of three (in the umbra of our synthetic scenes ``"all"`` is the closer one); with MVS
+        proxies ``"all"`` is better on three of the four. Use ``"unseen"`` with an exact proxy,
+        the default with an MVS one.
     subsample : float or None
         Voxel size (metres) of the points at which ``S_sky`` and ``S_ind`` are ray traced; the
         other vertices interpolate them (they are smooth). ``None``: every vertex.

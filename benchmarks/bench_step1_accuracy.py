@@ -103,6 +103,16 @@ def umbra_of(folder: Path) -> dict:
     return umbra_mask(folder)
 
 
+def env_errors(folder: Path, scene: Scene, result, tracer: Tracer, *, lit: bool = False) -> dict:
+    """``S_env`` of a Step-1 result rasterised into the views, scored in GT shadow, in the umbra (and lit)."""
+    env = {v.stem: rasterize(result.shading.env, v.camera, tracer) for v in scene.views}
+    out = {"env_shadow": env_shading_error(folder, env, region="shadow"),
+           "env_umbra": env_shading_error(folder, env, region="umbra", umbra=umbra_of(folder))}
+    if lit:
+        out["env_lit"] = env_shading_error(folder, env, region="lit")
+    return out
+
+
 def clean_proxy(folder: Path, base: Scene):
     centers = np.array([v.camera.center for v in base.views])
     return subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centers.mean(axis=0),
@@ -118,11 +128,8 @@ def seed_study(folder: Path, base: Scene, config: Step1Config, seeds: int) -> di
         rows = []
         for seed in range(seeds):
             result = step1(scene, config=replace(config, indirect_attenuation=attenuation), tracer=tracer, rng=seed)
-            env = {v.stem: rasterize(result.shading.env, v.camera, tracer) for v in scene.views}
-            rows.append({"seed": seed,
-                         "env_shadow": env_shading_error(folder, env, region="shadow")["median_rel_error"],
-                         "env_umbra": env_shading_error(folder, env, region="umbra",
-                                                        umbra=umbra_of(folder))["median_rel_error"]})
+            errors = env_errors(folder, scene, result, tracer)
+            rows.append({"seed": seed} | {k: e["median_rel_error"] for k, e in errors.items()})
             print(f"{folder.name:14s} clean {attenuation:7s} seed {seed}  S_env shadow err "
                   f"{np.round(rows[-1]['env_shadow'], 3)} umbra {np.round(rows[-1]['env_umbra'], 3)}", flush=True)
         worst = {k: np.max([r[k] for r in rows], axis=0).tolist() for k in ("env_shadow", "env_umbra")}
@@ -135,7 +142,6 @@ def evaluate(folder: Path, scene: Scene, config: Step1Config) -> dict:
     result = step1(scene, config=config, rng=0)
     seconds = time.perf_counter() - start
     tracer = Tracer(scene.proxy)
-    env = {v.stem: rasterize(result.shading.env, v.camera, tracer) for v in scene.views}
     vis = {v.stem: rasterize(result.shading.visibility, v.camera, tracer) for v in scene.views}
     out = {
         "vertices": int(len(scene.proxy.vertices)),
@@ -143,9 +149,7 @@ def evaluate(folder: Path, scene: Scene, config: Step1Config) -> dict:
         "timings": dict(result.timings),
         "turbidity": result.sky_model.turbidity,
         "sky_texels": result.sky_model.n_texels,
-        "env_shadow": env_shading_error(folder, env, region="shadow"),
-        "env_umbra": env_shading_error(folder, env, region="umbra", umbra=umbra_of(folder)),
-        "env_lit": env_shading_error(folder, env, region="lit"),
+        **env_errors(folder, scene, result, tracer, lit=True),
         "visibility": visibility_error(folder, vis),
     }
     info_file = folder / "gt" / "scene_info.json"

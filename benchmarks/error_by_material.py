@@ -122,6 +122,7 @@ def run(args: argparse.Namespace) -> int:
     foliage_label = label_names.index("foliage") if "foliage" in label_names else None
     counts = np.zeros((len(names), 2), dtype=np.int64)  # (FN, FP) per material
     n_shadow = n_lit = 0
+    missed = np.zeros(2, dtype=np.int64)  # (FN, FP) on pixels whose ray misses the exact mesh
     lmse = {r: {"reflectance": [], "shading": []} for r in REGIONS}
     for stem, layers in all_layers.items():
         gt = truth[stem]
@@ -136,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
         for i in range(len(names)):
             here = material == i
             counts[i] += [np.sum(here & true_shadow & ~said_shadow), np.sum(here & true_lit & said_shadow)]
+        nowhere = material < 0
+        missed += [np.sum(nowhere & true_shadow & ~said_shadow), np.sum(nowhere & true_lit & said_shadow)]
         foliage = np.zeros(material.shape, dtype=bool)
         if foliage_label is not None:
             foliage = ndimage.binary_dilation(face_labels[stem] == foliage_label, iterations=2)
@@ -146,7 +149,11 @@ def run(args: argparse.Namespace) -> int:
             lmse[region]["shading"].append(metrics.lmse(layers.shading, gt.shading, mask=mask))
     per_material = {names[i]: {"fn_share": counts[i, 0] / max(n_shadow, 1), "fp_share": counts[i, 1] / max(n_lit, 1)}
                     for i in range(len(names)) if counts[i].any()}
-    fnr, fpr = counts[:, 0].sum() / max(n_shadow, 1), counts[:, 1].sum() / max(n_lit, 1)
+    if missed.any():
+        per_material["(no exact-mesh hit)"] = {"fn_share": missed[0] / max(n_shadow, 1),
+                                               "fp_share": missed[1] / max(n_lit, 1)}
+    fnr = (counts[:, 0].sum() + missed[0]) / max(n_shadow, 1)
+    fpr = (counts[:, 1].sum() + missed[1]) / max(n_lit, 1)
     report = {
         "scene": str(args.scene), "views": len(all_layers),
         "result": str(args.result) if args.result is not None else f"smooth oracle, sigma {args.smooth_oracle} px",

@@ -67,6 +67,7 @@ __all__ = [
     "lmse_score",
     "si_mse",
     "balanced_error_rate",
+    "balanced_error_floor",
     "psnr",
     "ssim",
 ]
@@ -628,6 +629,66 @@ def balanced_error_rate(predicted_shadow, true_shadow, *, mask=None):
         stacklevel=2,
     )
     return 1.0 - tn / n_neg
+
+
+def balanced_error_floor(regions, true_shadow, *, mask=None):
+    r"""Smallest balanced error rate of any labelling that gives each region one label.
+
+    A labelling that calls every pixel of a region shadow or lit (a clustering followed by a
+    per-cluster classifier, as the shadow MRF of :mod:`mvintrinsic.shadow_mrf`) cannot score a
+    lower :func:`balanced_error_rate` than this, whatever its classifier.
+
+    Parameters
+    ----------
+    regions : (H, W) array_like of int
+        Region index of every pixel (non-negative).
+    true_shadow : (H, W) array_like of bool
+        Ground-truth shadow mask, True = in shadow.
+    mask : (H, W) array_like of bool, optional
+        Pixels that count; ``None`` uses all pixels.
+
+    Returns
+    -------
+    float
+        The floor in ``[0, 0.5]``.
+
+    Raises
+    ------
+    TypeError
+        If ``true_shadow`` is not boolean or ``regions`` not integer.
+    ValueError
+        If shapes disagree, a region index is negative, or the masked ground truth lacks a class
+        (the BER then has no two-class meaning).
+
+    Notes
+    -----
+    With ``P`` shadowed and ``N`` lit pixels in the mask, and ``s_c``, ``l_c`` those of region
+    ``c``, a region labelled lit adds ``s_c / P`` to the miss rate and one labelled shadow adds
+    ``l_c / N`` to the false-alarm rate. The BER is half their sum, so the regions are independent
+    and the best labelling takes the cheaper label for each:
+
+    .. math::
+
+        \mathrm{BER}_{\min} = \frac12 \sum_c \min\left(\frac{s_c}{P}, \frac{l_c}{N}\right).
+
+    It is lower than the BER of the per-region majority vote when the classes are unbalanced (a
+    region that is 40% shadow is best called shadow when shadow is rarer than 40%).
+    """
+    true = _as_bool_map(true_shadow, "true_shadow")
+    labels = np.asarray(regions)
+    if not np.issubdtype(labels.dtype, np.integer):
+        raise TypeError(f"`regions` must be an integer array of shape (H, W); got dtype {labels.dtype}")
+    _check_same_shape(labels, true, "regions", "true_shadow")
+    m = _as_mask(mask, true.shape, reference="true_shadow")
+    labels, true = labels[m], true[m]
+    if labels.size and labels.min() < 0:
+        raise ValueError("`regions` must be non-negative inside the mask")
+    n_shadow, n_lit = int(true.sum()), int((~true).sum())
+    if n_shadow == 0 or n_lit == 0:
+        raise ValueError("balanced_error_floor: the masked ground truth must hold both shadow and lit pixels")
+    shadow = np.bincount(labels, weights=true.astype(np.float64))
+    lit = np.bincount(labels, weights=(~true).astype(np.float64))
+    return float(0.5 * np.minimum(shadow / n_shadow, lit / n_lit).sum())
 
 
 # ---------------------------------------------------------------------------

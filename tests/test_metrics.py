@@ -13,6 +13,7 @@ import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from mvintrinsic.metrics import (
+    balanced_error_floor,
     balanced_error_rate,
     lmse,
     lmse_score,
@@ -278,6 +279,44 @@ def test_ber_hand_computed():
     mask[0, 3] = False
     mask[1, 0] = False
     assert balanced_error_rate(pred, true, mask=mask) == pytest.approx(0.1, rel=EXACT)
+
+
+def test_ber_floor_equals_the_best_of_every_region_labelling(rng):
+    # Brute force over all 2^7 labellings of 7 regions, each pixel taking its region's label.
+    regions = rng.integers(0, 7, size=(12, 15))
+    true = rng.random((12, 15)) > 0.7  # unbalanced: about 30% shadow
+    mask = rng.random((12, 15)) > 0.1
+    best = min(
+        balanced_error_rate(np.isin(regions, [r for r in range(7) if bits >> r & 1]), true, mask=mask)
+        for bits in range(2**7)
+    )
+    assert balanced_error_floor(regions, true, mask=mask) == pytest.approx(best, rel=EXACT)
+
+
+def test_ber_floor_hand_computed_and_below_the_majority_vote():
+    # Region 0: 2 shadow + 3 lit pixels, region 1: 0 shadow + 5 lit. P = 2, N = 8.
+    # Majority vote calls both lit: BER = (1 + 0) / 2 = 0.5. Calling region 0 shadow costs
+    # l_0 / N = 3/8 instead of s_0 / P = 1: floor = 3/16.
+    regions = np.array([[0, 0, 0, 0, 0], [1, 1, 1, 1, 1]])
+    true = np.zeros((2, 5), dtype=bool)
+    true[0, :2] = True
+    assert balanced_error_floor(regions, true) == pytest.approx(3.0 / 16.0, rel=EXACT)
+    assert balanced_error_rate(np.zeros_like(true), true) == pytest.approx(0.5, rel=EXACT)
+    # Regions that are each one class: the floor is 0.
+    assert balanced_error_floor(true.astype(int), true) == 0.0
+
+
+def test_ber_floor_rejects_bad_input():
+    true = np.zeros((2, 3), dtype=bool)
+    true[0, 0] = True
+    with pytest.raises(TypeError, match="regions"):
+        balanced_error_floor(np.zeros((2, 3)), true)
+    with pytest.raises(ValueError, match="non-negative"):
+        balanced_error_floor(-np.ones((2, 3), dtype=int), true)
+    with pytest.raises(ValueError, match="both shadow and lit"):
+        balanced_error_floor(np.zeros((2, 3), dtype=int), np.zeros((2, 3), dtype=bool))
+    with pytest.raises(ValueError, match="shape"):
+        balanced_error_floor(np.zeros((3, 3), dtype=int), true)
 
 
 def test_ber_single_class_warns_and_uses_present_class():

@@ -121,6 +121,10 @@ def score(result, seg, quantities, true_lit: np.ndarray, sky: np.ndarray) -> dic
     }
 
 
+def nan_if_none(value: float | None) -> float:
+    return float("nan") if value is None else value
+
+
 def mean(rows: list[dict], key: str) -> float | None:
     values = [r[key] for r in rows if r.get(key) is not None]
     return float(np.mean(values)) if values else None
@@ -165,7 +169,8 @@ def run_scene(folder: Path, views: int | None, sweep: bool, oracle: bool) -> dic
         out["views"][view.stem] = row
         print(f"  {view.stem}: {seg.n_segments} clusters, BER {row['estimated']['ber']:.3f} (true L_sun "
               f"{row['true_sun']['ber']:.3f}, proxy {row['estimated']['ber_proxy']:.3f}, floor "
-              f"{row['estimated']['floor']:.3f}), {seg_seconds:.2f} s + {mrf_seconds:.2f} s", flush=True)
+              f"{nan_if_none(row['estimated']['floor']):.3f}), {seg_seconds:.2f} s + {mrf_seconds:.2f} s",
+              flush=True)
     rows = list(out["views"].values())
     summary = {"seconds_segmentation": mean(rows, "seconds_segmentation"), "seconds_mrf": mean(rows, "seconds_mrf"),
                "clusters": mean(rows, "clusters")}
@@ -211,7 +216,7 @@ def main(argv: list[str] | None = None) -> int:
         oracle = m.get("oracle", {}).get("ber")
         print(f"{name:16s}{m['estimated']['ber']:9.3f}{m['true_sun']['ber']:9.3f}"
               f"{oracle if oracle is not None else float('nan'):9.3f}{m['estimated']['ber_proxy']:9.3f}"
-              f"{m['estimated']['floor']:9.3f}{m['estimated']['undetermined']:8.3f}"
+              f"{nan_if_none(m['estimated']['floor']):9.3f}{m['estimated']['undetermined']:8.3f}"
               f"{m['seconds_segmentation']:7.2f}{m['seconds_mrf']:7.2f}")
         if "sweep" in scene:
             print("    sweep (estimated L_sun): " + ", ".join(f"{k} {v:.3f}" for k, v in scene["sweep"].items()))

@@ -100,7 +100,7 @@ def score(result, seg, quantities, true_lit: np.ndarray, sky: np.ndarray) -> dic
     majority = np.where(np.isfinite(majority), majority > 0.5, True)
     best = np.zeros(seg.shape, dtype=bool)
     best[seg.valid] = ~majority[seg.labels[seg.valid]]
-    two_classes = scored.any() and 0 < int((~true_lit[scored]).sum()) < int(scored.sum())
+    two_classes = 0 < int((~true_lit[scored]).sum()) < int(scored.sum())  # else the BER has no floor
     floor = balanced_error_floor(seg.labels, ~true_lit, mask=scored) if two_classes else None
     rule = result.unary_rule
     seed_shadow = np.isin(rule, [UNARY_RULES.index("shadow"), UNARY_RULES.index("local_shadow")])

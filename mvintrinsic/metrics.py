@@ -641,7 +641,8 @@ def balanced_error_floor(regions, true_shadow, *, mask=None):
     Parameters
     ----------
     regions : (H, W) array_like of int
-        Region index of every pixel (non-negative).
+        Region index of every pixel; must be non-negative where ``mask`` is True (pixels
+        outside it may carry any value, e.g. -1).
     true_shadow : (H, W) array_like of bool
         Ground-truth shadow mask, True = in shadow.
     mask : (H, W) array_like of bool, optional
@@ -657,7 +658,7 @@ def balanced_error_floor(regions, true_shadow, *, mask=None):
     TypeError
         If ``true_shadow`` is not boolean or ``regions`` not integer.
     ValueError
-        If shapes disagree, a region index is negative, or the masked ground truth lacks a class
+        If shapes disagree, a region index inside the mask is negative, or the masked ground truth lacks a class
         (the BER then has no two-class meaning).
 
     Notes

@@ -30,6 +30,7 @@ import argparse
 import json
 import os
 import platform
+import tempfile
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -129,9 +130,8 @@ def ray_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, co
         return None  # made by another tool: the Mitsuba scene cannot be rebuilt
     try:
         from mvintrinsic.synth.recipes import build_scene
-        from mvintrinsic.synth.render import MitsubaScene, RenderConfig
-        synth = build_scene(info["recipe"], seed=info["seed"], gloss=info["config"].get("gloss", False))
-        mitsuba = MitsubaScene(synth, Path(os.environ.get("TMPDIR", "/tmp")) / f"lsun_budget_{folder.name}")
+        from mvintrinsic.synth.render import MitsubaScene, RenderConfig, import_mitsuba
+        import_mitsuba()
     except ImportError:
         return None
     views = {v.stem: v for v in scene.views}
@@ -177,11 +177,15 @@ def ray_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, co
     kind[miss & env.sky[rows_t, cols_t] & ~env.observed[rows_t, cols_t]] = "sky, model-filled texels"
     kind[miss & ~env.sky[rows_t, cols_t]] = "other texels"
 
-    mi = mitsuba.mi
     render = RenderConfig(**info["config"]["render"])  # the renderer's settings of this scene
-    mscene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": render.max_depth},
-                           "emitter": mitsuba._emitter(np.array(info["sun_direction"]), render, sun=True, sky=True),
-                           **mitsuba.shapes})
+    synth = build_scene(info["recipe"], seed=info["seed"], gloss=info["config"].get("gloss", False))
+    with tempfile.TemporaryDirectory() as work:  # the PLY files Mitsuba loads the meshes from
+        mitsuba = MitsubaScene(synth, work)
+        mi = mitsuba.mi
+        mscene = mi.load_dict({"type": "scene", "integrator": {"type": "path", "max_depth": render.max_depth},
+                               "emitter": mitsuba._emitter(np.array(info["sun_direction"]), render, sun=True,
+                                                           sky=True),
+                               **mitsuba.shapes})
     integrator = mscene.integrator()
     sampler = mi.load_dict({"type": "independent", "sample_count": spp})
     sampler.seed(0, 1)

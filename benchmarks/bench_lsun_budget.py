@@ -41,13 +41,16 @@ from bench_step1_accuracy import clean_proxy, hosek_sky, scenes
 import mvintrinsic
 from mvintrinsic import Scene
 from mvintrinsic.evaluation import read_ground_truth, read_ground_truth_lighting
+from mvintrinsic.image_model import sun_radiance_from_pair
 from mvintrinsic.io import load_scene, write_json
 from mvintrinsic.pipeline import Config, calibrate, carry_to_pixels
 from mvintrinsic.raytrace import (
     Tracer,
     cosine_hemisphere,
     environment_shading,
+    fill_unseen,
     interpolate_points,
+    ray_radiance,
     step1,
     voxel_subsample,
 )
@@ -79,19 +82,21 @@ def _at(pairs, maps: dict, side: str) -> np.ndarray:
                           ).astype(np.float64)
 
 
-def _eq5_error(rho: np.ndarray, cosine: np.ndarray, truth: np.ndarray, lit: np.ndarray, shadow: np.ndarray) -> list:
-    """Relative error of the per-channel median over the pairs of Eq. (5) with the given ``S_env``."""
-    estimate = np.median((rho * shadow - lit) / cosine, axis=0)
-    return np.round((estimate - truth) / truth, 4).tolist()
+def _eq5_error(image: dict, cosine: np.ndarray, truth: np.ndarray, env: dict) -> list:
+    """Relative error of the per-channel median over the pairs of Eq. (5), given each pair's
+    ``image`` and ``env`` (``S_env``) by side ("lit", "shadow") and the lit pixel's ``cosine``."""
+    estimates = sun_radiance_from_pair(image["lit"], image["shadow"], env["lit"], env["shadow"],
+                                       np.ones(len(cosine)), np.zeros(len(cosine)), cosine, np.zeros(len(cosine)))
+    return np.round((np.median(estimates, axis=0) - truth) / truth, 4).tolist()
 
 
-def eq5_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, config: Config) -> dict:
+def eq5_table(folder: Path, info: dict, scene: Scene, tracer: Tracer, result, quantities, config: Config,
+              pairs_by_pick: dict) -> dict:
     """Part 1: relative ``L_sun`` error of Eq. 5 with each part of ``S_env`` ours or true."""
     truth = read_ground_truth_lighting(folder).sun_radiance
     gt = read_ground_truth(folder)
     env = result.environment
     he = env.height
-    info = json.loads((folder / "gt" / "scene_info.json").read_text())
     turbidity = float(info.get("sky", {}).get("turbidity", 3.0))
     true_sky = hosek_sky(scene.sun.direction, turbidity, envmap_directions(he, up=scene.up).reshape(-1, 3))
     filled = env.sky & ~env.observed
@@ -100,32 +105,31 @@ def eq5_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, co
         true_filled = _as_pixels(scene, tracer, result, _traced_sky(
             scene, tracer, result, true_sky.reshape(he, 2 * he, 3), filled, config))
     images = {v.stem: v.image for v in scene.views}
+    cosines = {k: q.cosine for k, q in quantities.items()}
+    ours_env = {k: q.env for k, q in quantities.items()}
+    true_env = {k: g.env_shading for k, g in gt.items()}
+    sides = ("lit", "shadow")
     out = {}
-    for pick in ("extreme", "median"):
-        run = replace(config, sun=replace(config.sun, pick=pick))
-        pairs = [p for p in calibrate(scene, quantities, config=run).pairs if len(p)]
-        ours_env = {k: q.env for k, q in quantities.items()}
-        true_env = {k: g.env_shading for k, g in gt.items()}
-        rho = _at(pairs, images, "lit") / _at(pairs, images, "shadow")
-        cosine = _at(pairs, {k: q.cosine for k, q in quantities.items()}, "lit").reshape(len(rho), -1)[:, :1]
-        ours = {s: _at(pairs, ours_env, s) for s in ("lit", "shadow")}
-        true = {s: _at(pairs, true_env, s) for s in ("lit", "shadow")}
-        rows = {"pairs": len(rho), "ours": _eq5_error(rho, cosine, truth, ours["lit"], ours["shadow"]),
-                "true": _eq5_error(rho, cosine, truth, true["lit"], true["shadow"])}
+    for pick, pairs in pairs_by_pick.items():
+        image = {s: _at(pairs, images, s) for s in sides}
+        cosine = _at(pairs, cosines, "lit").reshape(len(image["lit"]), -1)[:, 0]
+        ours = {s: _at(pairs, ours_env, s) for s in sides}
+        true = {s: _at(pairs, true_env, s) for s in sides}
+        rows = {"pairs": len(cosine), "ours": _eq5_error(image, cosine, truth, ours),
+                "true": _eq5_error(image, cosine, truth, true)}
         if true_sky is not None:  # our minus the true sky of the model-filled texels, at each pixel
-            delta = {s: _at(pairs, ours_filled, s) - _at(pairs, true_filled, s) for s in ("lit", "shadow")}
-            rows["ours_with_true_filled_sky"] = _eq5_error(rho, cosine, truth, ours["lit"] - delta["lit"],
-                                                           ours["shadow"] - delta["shadow"])
-            rows["true_with_our_filled_sky"] = _eq5_error(rho, cosine, truth, true["lit"] + delta["lit"],
-                                                          true["shadow"] + delta["shadow"])
+            delta = {s: _at(pairs, ours_filled, s) - _at(pairs, true_filled, s) for s in sides}
+            rows["ours_with_true_filled_sky"] = _eq5_error(image, cosine, truth,
+                                                           {s: ours[s] - delta[s] for s in sides})
+            rows["true_with_our_filled_sky"] = _eq5_error(image, cosine, truth,
+                                                          {s: true[s] + delta[s] for s in sides})
         out[pick] = rows
     return out
 
 
-def ray_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, config: Config, *,
+def ray_table(info: dict, scene: Scene, tracer: Tracer, result, config: Config, pairs: list, *,
               points: int, spp: int) -> dict | None:
     """Part 2: our per-ray contributions to ``S_env`` at the pairs' shadowed points against Mitsuba."""
-    info = json.loads((folder / "gt" / "scene_info.json").read_text())
     if "recipe" not in info:
         return None  # made by another tool: the Mitsuba scene cannot be rebuilt
     try:
@@ -136,9 +140,7 @@ def ray_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, co
         return None
     views = {v.stem: v for v in scene.views}
     origins, normals = [], []
-    for p in calibrate(scene, quantities, config=config).pairs:
-        if not len(p):
-            continue
+    for p in pairs:
         camera = views[p.stem].camera
         rays = camera.pixel_rays(p.shadow[:, ::-1] + 0.5)
         hits = tracer.intersect(camera.center, rays)
@@ -153,23 +155,14 @@ def ray_table(folder: Path, scene: Scene, tracer: Tracer, result, quantities, co
     starts = np.repeat(origins + config.step1.ray_offset * normals, RAYS, axis=0)
     hits = tracer.intersect(starts, directions)
     radiance = np.asarray(result.radiance, dtype=np.float64)
-    seen = np.isfinite(radiance).all(axis=1)
-    filled_values = radiance.copy()
-    from scipy.spatial import cKDTree  # the nearest-seen fill of raytrace._fill_unseen
-    _, nearest = cKDTree(scene.proxy.vertices[seen]).query(scene.proxy.vertices[~seen])
-    filled_values[~seen] = radiance[seen][nearest]
-    gathered = tracer.interpolate(filled_values, hits)
-    unseen_share = tracer.interpolate((~seen).astype(np.float64)[:, None], hits)[:, 0]
-    cosine = np.abs(np.einsum("ij,ij->i", hits.normals, directions))
-    mode = config.step1.indirect_attenuation
-    factor = {"all": cosine, "unseen": 1 - unseen_share + unseen_share * cosine, "none": np.ones_like(cosine)}[mode]
+    unseen = (~np.isfinite(radiance).all(axis=1)).astype(np.float64)[:, None]
+    filled = fill_unseen(radiance, scene.proxy.vertices)
     env = result.environment
+    mode = config.step1.indirect_attenuation
+    ours = np.add(*ray_radiance(tracer, hits, directions, env, filled, unseen, attenuation=mode))  # sky + indirect
+    unattenuated = np.add(*ray_radiance(tracer, hits, directions, env, filled, unseen, attenuation="none"))
+    unseen_share = tracer.interpolate(unseen, hits)[:, 0]
     miss = ~hits.hit
-    ours = np.zeros((len(directions), 3))
-    ours[miss] = env.lookup(directions[miss])
-    ours[hits.hit] = (gathered * factor[:, None])[hits.hit]
-    unattenuated = ours.copy()
-    unattenuated[hits.hit] = gathered[hits.hit]
     rows_t, cols_t = direction_to_texel(directions, env.height, up=env.up)
     kind = np.full(len(directions), "proxy, unseen vertices", dtype=object)
     kind[hits.hit & (unseen_share <= 0.5)] = "proxy, seen vertices"
@@ -234,11 +227,15 @@ def main() -> None:
         scene, tracer = Scene(base.views, proxy, base.sun, base.up), Tracer(proxy)
         result = step1(scene, config=config.step1, tracer=tracer, rng=0)
         quantities = carry_to_pixels(scene, result, tracer)
-        entry = {"eq5": eq5_table(folder, scene, tracer, result, quantities, config)}
+        info = json.loads((folder / "gt" / "scene_info.json").read_text())
+        pairs_by_pick = {pick: [p for p in calibrate(scene, quantities, config=replace(
+            config, sun=replace(config.sun, pick=pick))).pairs if len(p)] for pick in ("extreme", "median")}
+        entry = {"eq5": eq5_table(folder, info, scene, tracer, result, quantities, config, pairs_by_pick)}
         for pick, rows in entry["eq5"].items():
             print(f"{name:14s} pick {pick:8s} {rows['pairs']:4d} pairs  L_sun rel. error: "
                   + "  ".join(f"{k} {np.round(v, 2).tolist()}" for k, v in rows.items() if k != "pairs"), flush=True)
-        rays = ray_table(folder, scene, tracer, result, quantities, config, points=args.points, spp=args.spp)
+        rays = ray_table(info, scene, tracer, result, config, pairs_by_pick[config.sun.pick], points=args.points,
+                         spp=args.spp)
         if rays is not None:
             entry["rays"] = rays
             for k, row in rays["components"].items():

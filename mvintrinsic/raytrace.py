@@ -40,9 +40,11 @@ __all__ = [
     "cosine_hemisphere",
     "depth_map",
     "environment_shading",
+    "fill_unseen",
     "interpolate_points",
     "morton_order",
     "rasterize",
+    "ray_radiance",
     "step1",
     "subdivide",
     "sun_visibility",
@@ -547,8 +549,10 @@ def _bilinear(image: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
     return top * (1 - fy) + bottom * fy
 
 
-def _fill_unseen(values: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Give NaN rows the value of the nearest finite row (unseen vertices still reflect light)."""
+def fill_unseen(values: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Rows of ``values (N, C)`` with a NaN take the value of the nearest finite row (by ``points
+    (N, 3)``): the radiance Step 1 gives vertices no view sees (they still reflect light). All
+    rows NaN: zeros. (N, C) float64."""
     bad = ~np.isfinite(values).all(axis=1)
     if not bad.any() or bad.all():
         return np.where(np.isfinite(values), values, 0.0)
@@ -622,7 +626,7 @@ def environment_shading(
     gen = _rng(rng)
     radiance = np.asarray(radiance, dtype=np.float64)
     unseen = (~np.isfinite(radiance).all(axis=1)).astype(np.float64)[:, None]
-    vertex_values = _fill_unseen(radiance, tracer.proxy.vertices)
+    vertex_values = fill_unseen(radiance, tracer.proxy.vertices)
     order = morton_order(points)
     sky = np.zeros((len(points), 3))
     indirect = np.zeros((len(points), 3))
@@ -632,24 +636,67 @@ def environment_shading(
         directions = cosine_hemisphere(normals[idx], n_rays, rng=gen).reshape(-1, 3)
         origins = np.repeat(points[idx] + ray_offset * normals[idx], n_rays, axis=0)
         hits = tracer.intersect(origins, directions, batch=len(directions))
-        contribution = np.zeros((len(directions), 3))
-        miss = ~hits.hit
-        env = environment.lookup(directions[miss]).astype(np.float64)
-        is_sky = environment.is_sky(directions[miss])
-        to_sky = np.zeros((len(directions), 3))
-        to_sky[np.flatnonzero(miss)[is_sky]] = env[is_sky]
-        contribution[np.flatnonzero(miss)[~is_sky]] = env[~is_sky]
-        gathered = tracer.interpolate(vertex_values, hits)
-        if mode != "none":
-            cosine = np.abs(np.einsum("ij,ij->i", hits.normals, directions))
-            if mode == "unseen":  # attenuate only the unseen vertices' share of the hit
-                share = tracer.interpolate(unseen, hits)[:, 0]
-                cosine = 1.0 - share + share * cosine
-            gathered *= cosine[:, None]
-        contribution[hits.hit] = gathered[hits.hit]
+        to_sky, contribution = ray_radiance(tracer, hits, directions, environment, vertex_values, unseen,
+                                            attenuation=mode)
         sky[idx] = to_sky.reshape(len(idx), n_rays, 3).mean(axis=1)
         indirect[idx] = contribution.reshape(len(idx), n_rays, 3).mean(axis=1)
     return sky.astype(np.float32), indirect.astype(np.float32)
+
+
+def ray_radiance(
+    tracer: Tracer,
+    hits: RayHits,
+    directions: np.ndarray,
+    environment: EnvironmentMap,
+    vertex_values: np.ndarray,
+    unseen: np.ndarray,
+    *,
+    attenuation: str | bool = "all",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Radiance each hemisphere ray of Step 1 brings (paper Sec. 4), split into sky and indirect.
+
+    A ray that misses the proxy reads the environment map in its direction (sky texels: sky, other
+    texels: indirect); a ray that hits it brings the vertex radiance interpolated at the hit, times
+    the paper's attenuation factor where ``attenuation`` applies it (see
+    :func:`environment_shading`). The mean over a point's cosine-weighted rays is its shading.
+
+    Parameters
+    ----------
+    tracer : Tracer
+    hits : RayHits
+        ``tracer.intersect`` of the rays.
+    directions : (R, 3) array_like
+        Unit world directions of the rays.
+    environment : EnvironmentMap
+    vertex_values : (N, 3) array_like
+        Radiance of every proxy vertex, unseen ones filled (:func:`fill_unseen`).
+    unseen : (N, 1) array_like
+        1.0 for the vertices no view sees, else 0.0 (used by ``attenuation="unseen"``).
+    attenuation : {"all", "unseen", "none"} or bool, optional
+        See :class:`Step1Config` ``indirect_attenuation``.
+
+    Returns
+    -------
+    sky, indirect : (R, 3) float64
+    """
+    mode = _attenuation_mode(attenuation)
+    directions = np.asarray(directions, dtype=np.float64)
+    indirect = np.zeros((len(directions), 3))
+    miss = ~hits.hit
+    env = environment.lookup(directions[miss]).astype(np.float64)
+    is_sky = environment.is_sky(directions[miss])
+    sky = np.zeros((len(directions), 3))
+    sky[np.flatnonzero(miss)[is_sky]] = env[is_sky]
+    indirect[np.flatnonzero(miss)[~is_sky]] = env[~is_sky]
+    gathered = tracer.interpolate(vertex_values, hits)
+    if mode != "none":
+        cosine = np.abs(np.einsum("ij,ij->i", hits.normals, directions))
+        if mode == "unseen":  # attenuate only the unseen vertices' share of the hit
+            share = tracer.interpolate(unseen, hits)[:, 0]
+            cosine = 1.0 - share + share * cosine
+        gathered *= cosine[:, None]
+    indirect[hits.hit] = gathered[hits.hit]
+    return sky, indirect
 
 
 def voxel_subsample(points: np.ndarray, voxel: float) -> np.ndarray:

@@ -14,9 +14,11 @@ from mvintrinsic.raytrace import (
     Tracer,
     cosine_hemisphere,
     environment_shading,
+    fill_unseen,
     interpolate_points,
     morton_order,
     rasterize,
+    ray_radiance,
     step1,
     subdivide,
     sun_visibility,
@@ -150,6 +152,34 @@ def test_attenuation_only_on_unseen_radiance():
     radiance[4:] = np.nan
     _, ind = environment_shading(points, normals, tracer, uniform_sky(L), radiance, **kwargs)
     np.testing.assert_allclose(ind[0], W / 4 + W / (3 * math.pi), rtol=MC_TOL)
+
+
+def test_ray_radiance_is_what_environment_shading_averages():
+    """Per ray, ``ray_radiance`` brings the sky colour L or the wall's W (times the factor); the
+    mean over the rays ``environment_shading`` casts (same seed, one point) is its result."""
+    left = quad([[0.01, -500, -1], [0.01, 0, -1], [0.01, 0, 200], [0.01, -500, 200]])
+    right = quad([[0.01, 0, -1], [0.01, 500, -1], [0.01, 500, 200], [0.01, 0, 200]])
+    tracer = Tracer(mesh_proxy(*merge(left, right)))
+    L, W = np.array([0.2, 0.4, 0.8]), np.array([0.6, 0.5, 0.4])
+    radiance = np.tile(W, (8, 1))
+    radiance[4:] = np.nan
+    unseen = (~np.isfinite(radiance).all(axis=1)).astype(np.float64)[:, None]
+    filled = fill_unseen(radiance, tracer.proxy.vertices)
+    np.testing.assert_array_equal(filled, np.tile(W, (8, 1)))
+    points, normals = np.zeros((1, 3)), np.array([[0.0, 0.0, 1.0]])
+    directions = cosine_hemisphere(normals, MC_RAYS, rng=np.random.default_rng(0)).reshape(-1, 3)
+    hits = tracer.intersect(np.zeros((MC_RAYS, 3)), directions)
+    assert 0.3 < hits.hit.mean() < 0.7
+    for mode in ("all", "unseen", "none"):
+        sky, ind = ray_radiance(tracer, hits, directions, uniform_sky(L), filled, unseen, attenuation=mode)
+        np.testing.assert_allclose(sky[~hits.hit], np.tile(L, (int((~hits.hit).sum()), 1)), rtol=1e-6)
+        assert not sky[hits.hit].any() and not ind[~hits.hit].any()
+        if mode == "none":
+            np.testing.assert_allclose(ind[hits.hit], np.tile(W, (int(hits.hit.sum()), 1)), rtol=1e-12)
+        mean_sky, mean_ind = environment_shading(points, normals, tracer, uniform_sky(L), radiance, n_rays=MC_RAYS,
+                                                 ray_offset=0.0, attenuation=mode, rng=0)
+        np.testing.assert_allclose(mean_sky[0], sky.mean(axis=0), rtol=1e-6)
+        np.testing.assert_allclose(mean_ind[0], ind.mean(axis=0), rtol=1e-6)
 
 
 def test_attenuation_modes_are_validated():

@@ -76,6 +76,9 @@ def as_unit_vector(value: object, name: str) -> np.ndarray:
     norm = float(np.linalg.norm(vector))
     if norm < 1e-12:
         raise ValueError(f"{name} must be a non-zero vector, got {vector.tolist()}")
-    unit = vector / norm
+    # A vector already of unit length (within float64 rounding) is kept bit for bit, so that a
+    # direction written out and read back compares equal: dividing by a norm that rounds 1 ulp off
+    # 1 would move it (seen with NumPy 2.4's norm).
+    unit = vector.copy() if abs(norm - 1.0) <= 4 * np.finfo(np.float64).eps else vector / norm
     unit.flags.writeable = False
     return unit

@@ -160,6 +160,7 @@ from .segmentation import Segmentation, perceptual_lab
 
 __all__ = [
     "DISTANCES",
+    "METHODS",
     "EDGE_KINDS",
     "TIE_BREAKS",
     "UNARY_RULES",
@@ -193,6 +194,9 @@ DISTANCES = ("log", "euclidean")
 #: Valid values of :attr:`ShadowConfig.tie_break`.
 TIE_BREAKS = ("proxy", "lit", "shadow")
 
+#: Valid values of :attr:`ShadowConfig.method`: the labelling Step 3 runs.
+METHODS = ("multiview", "paper")
+
 #: Reflectances below this are raised to it before the logarithm of ``distance="log"``.
 LOG_FLOOR = 1e-3
 
@@ -203,6 +207,12 @@ class ShadowConfig:
 
     Parameters
     ----------
+    method : {"multiview", "paper"}
+        Which labelling the pipeline's Step 3 runs. ``"paper"``: this module, Sec. 6.1 per view and
+        per cluster, with the parameters below. ``"multiview"`` (default): all views at once at
+        pixel resolution (:mod:`mvintrinsic.multiview_shadows`, configured by
+        ``Config.multiview``), which measured half the paper's balanced error or less on every
+        scene of ``benchmarks/bench_shadows.py``; the parameters below are then unused.
     k : int
         Number of best partners: the clusters summed in ``H_0``, ``H_1`` (Eqs. 8-9), ``H'_0``,
         ``H'_1`` (Eq. 12), and the reflectance edges per cluster (Eq. 14). The paper names ``k``
@@ -251,6 +261,7 @@ class ShadowConfig:
         The norm of Eq. 6 (the paper's ``|.|``; see the module docstring).
     """
 
+    method: str = "multiview"
     k: int = 1
     tau_1: float = 0.1
     local_radius: float = 0.05
@@ -282,6 +293,8 @@ class ShadowConfig:
         if not self.l_np <= self.l_p:
             raise ValueError(f"l_np must be <= l_p (Eq. 15 must stay submodular), got l_np={self.l_np!r}, "
                              f"l_p={self.l_p!r}")
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {list(METHODS)}, got {self.method!r}")
         if self.distance not in DISTANCES:
             raise ValueError(f"distance must be one of {list(DISTANCES)}, got {self.distance!r}")
         if not is_real(self.tau_1) or not 0 < self.tau_1 < 0.5:

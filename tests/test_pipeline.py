@@ -1,4 +1,4 @@
-"""The Steps 1-2 pipeline: configuration, per-pixel quantities, decompose(), and the decompose CLI."""
+"""The Steps 1-3 pipeline: configuration, per-pixel quantities, decompose(), and the decompose CLI."""
 
 from __future__ import annotations
 
@@ -67,10 +67,36 @@ def test_decompose_records_lighting_timings_and_config(demo_result):
     lighting = demo_result.lighting
     assert (lighting.sun_radiance > 0).all()
     assert lighting.sky.model == "preetham" and lighting.envmap is not None
-    for stage in ("step1.environment_shading", "step1.vertex_radiance", "pixels", "sun_pairs", "segmentation",
-                  "shadow_mrf", "matting"):
+    for stage in ("step1.environment_shading", "step1.vertex_radiance", "pixels", "sun_pairs", "shadow_labels",
+                  "shadow_labels.evidence", "shadow_labels.correspondences", "shadow_labels.palette",
+                  "shadow_labels.graph_cut", "segmentation", "matting"):
         assert stage in demo_result.timings
+    assert "shadow_mrf" not in demo_result.timings
     assert Config.from_dict(demo_result.config) == Config()
+
+
+def test_the_papers_labelling_stays_selectable(demo_scene, demo_result):
+    config = Config.from_dict({"shadow": {"method": "paper"}})
+    assert config.shadow.method == "paper" and Config().shadow.method == "multiview"
+    paper = decompose(demo_scene, config=config)
+    assert "shadow_mrf" in paper.timings and "shadow_labels" not in paper.timings
+    np.testing.assert_array_equal(paper.lighting.sun_radiance, demo_result.lighting.sun_radiance)
+    stem = demo_scene.views[0].stem
+    assert not np.array_equal(paper.layers[stem].shadow_labels, demo_result.layers[stem].shadow_labels)
+    with pytest.raises(ValueError, match="method must be one of"):
+        Config.from_dict({"shadow": {"method": "best"}})
+    partial = Config.from_dict({"multiview": {"iterations": 1, "palette_bins": [0.2, 0.05, 0.05]}})
+    assert partial.multiview.iterations == 1 and partial.multiview.palette_bins == (0.2, 0.05, 0.05)
+
+
+def test_step3_view_needs_the_multiview_labels(demo_scene):
+    from mvintrinsic.pipeline import step3_view
+
+    tracer = Tracer(demo_scene.proxy)
+    view = demo_scene.views[0]
+    quantities = carry_to_pixels(demo_scene, step1(demo_scene, tracer=tracer, rng=0), tracer)
+    with pytest.raises(ValueError, match="labels: the multi-view labelling needs"):
+        step3_view(view, quantities[view.stem], np.ones(3))
 
 
 def test_steps_2_stops_after_the_sun_calibration(demo_scene, demo_result):
@@ -78,7 +104,7 @@ def test_steps_2_stops_after_the_sun_calibration(demo_scene, demo_result):
     assert "layers" in step2.timings and "matting" not in step2.timings
     np.testing.assert_array_equal(step2.lighting.sun_radiance, demo_result.lighting.sun_radiance)
     view = demo_scene.views[0]
-    # Step 2 labels are the proxy visibility thresholded; Step 3 relabels by the MRF
+    # Step 2 labels are the proxy visibility thresholded; Step 3 relabels
     assert not np.array_equal(step2.layers[view.stem].shadow_labels, demo_result.layers[view.stem].shadow_labels)
     with pytest.raises(ValueError, match="steps must be 2 or 3"):
         Config(steps=4)

@@ -236,30 +236,25 @@ def step3_view(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray
     Step3View
     """
     config = config or Config()
-    timings = {}
-    if config.shadow.method == "multiview":
-        if not isinstance(labels, PixelShadowLabels) or labels.stem != view.stem:
-            raise ValueError(f"labels: the multi-view labelling needs the PixelShadowLabels of view {view.stem!r} "
-                             f"(pipeline.step3 computes them for all views), got {labels!r}")
-        # The matting keeps the colour segmentation: its cluster boundaries are kept out of the
-        # shading constraints and matted for visibility (Sec. 6.2). Without them the demo's
-        # reflectance LMSE rose from 0.070 to 0.104 with these labels, and to 0.122 with the true ones.
-        start = time.perf_counter()
-        seg = segment(view.image, mask=quantities.valid, config=config.segmentation)
-        timings["segmentation"] = time.perf_counter() - start
-        start = time.perf_counter()
-        layers = intrinsic_layers(view, quantities, labels.labels, sun_radiance, clusters=seg.labels,
-                                  config=config.matting)
-        timings["matting"] = time.perf_counter() - start
-        return Step3View(segmentation=seg, shadow=labels, layers=layers, timings=timings)
-    if labels is not None:
+    multiview = config.shadow.method == "multiview"
+    if multiview and (not isinstance(labels, PixelShadowLabels) or labels.stem != view.stem):
+        raise ValueError(f"labels: the multi-view labelling needs the PixelShadowLabels of view {view.stem!r} "
+                         f"(pipeline.step3 computes them for all views), got {labels!r}")
+    if not multiview and labels is not None:
         raise ValueError("labels are only taken with config.shadow.method == 'multiview'")
+    timings = {}
+    # The segmentation serves the matting under both labellings: its cluster boundaries are kept
+    # out of the shading constraints and matted for visibility (Sec. 6.2). Without them the demo's
+    # reflectance LMSE rose from 0.070 to 0.104 with the multi-view labels, 0.122 with the true ones.
     start = time.perf_counter()
     seg = segment(view.image, mask=quantities.valid, config=config.segmentation)
     timings["segmentation"] = time.perf_counter() - start
-    start = time.perf_counter()
-    shadow = label_shadows(view.image, quantities, seg, sun_radiance, config=config.shadow)
-    timings["shadow_mrf"] = time.perf_counter() - start
+    if multiview:
+        shadow = labels
+    else:
+        start = time.perf_counter()
+        shadow = label_shadows(view.image, quantities, seg, sun_radiance, config=config.shadow)
+        timings["shadow_mrf"] = time.perf_counter() - start
     start = time.perf_counter()
     layers = intrinsic_layers(view, quantities, shadow.labels, sun_radiance, clusters=seg.labels,
                               config=config.matting)

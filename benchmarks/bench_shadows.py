@@ -27,16 +27,17 @@ views as ``mvintrinsic.evaluation.evaluate`` scores them:
 Scenes: the embedded demo (240x180), ``../shared/datasets/dev_courtyard`` (320x240) and the
 scenes below under ``--data`` (default ``../data`` beside the checkout), rendered by
 ``mvintrinsic synth`` (``--make`` renders the missing ones; about 15 minutes each at 480x360 and
-an hour at 1000x750 on 2 cores)::
+half an hour at 1000x750 on 2 cores)::
 
-    mvintrinsic synth courtyard DATA/courtyard_s1 --views 8 --size 480x360 --seed 1 --relit R
-    mvintrinsic synth street DATA/street_s0 --views 8 --size 480x360 --seed 0 --relit R
-    mvintrinsic synth street DATA/street_s2 --views 8 --size 480x360 --seed 2 --relit R
+    mvintrinsic synth courtyard DATA/courtyard_s1 --views 8 --size 480x360 --seed 1
+    mvintrinsic synth street DATA/street_s0 --views 8 --size 480x360 --seed 0
+    mvintrinsic synth street DATA/street_s2 --views 8 --size 480x360 --seed 2
     mvintrinsic synth courtyard DATA/demo_480 --views 6 --size 480x360 --seed 0 --sun=-120,35 \\
-        --degrade voxel_size=0.08 --relit R
-    mvintrinsic synth courtyard DATA/courtyard_1000 --views 6 --size 1000x750 --seed 2 --relit az+15,el+10
+        --degrade voxel_size=0.08
+    mvintrinsic synth courtyard DATA/courtyard_1000 --views 6 --size 1000x750 --seed 2 --relit none
 
-with ``R = az+15,az-15,az+30,az-30,el+10`` and 64 samples per pixel. ``--smoke`` runs the demo
+(64 samples per pixel, each scene with its own MVS-like proxy; ``demo_480`` is the embedded demo's
+scene at twice its resolution). ``--smoke`` runs the demo
 only (CI-sized: under a minute). Run with the package importable.
 """
 
@@ -67,14 +68,13 @@ from mvintrinsic.results import SHADOW_LABELS
 from mvintrinsic.shadow_mrf import ShadowConfig
 
 ROOT = Path(__file__).resolve().parents[2]
-RELIT = "az+15,az-15,az+30,az-30,el+10"
 #: name: (recipe, views, size, seed, extra synth arguments)
 SYNTH = {
-    "courtyard_s1": ("courtyard", 8, "480x360", 1, [f"--relit={RELIT}"]),
-    "street_s0": ("street", 8, "480x360", 0, [f"--relit={RELIT}"]),
-    "street_s2": ("street", 8, "480x360", 2, [f"--relit={RELIT}"]),
-    "demo_480": ("courtyard", 6, "480x360", 0, ["--sun=-120,35", "--degrade", "voxel_size=0.08", f"--relit={RELIT}"]),
-    "courtyard_1000": ("courtyard", 6, "1000x750", 2, ["--relit=az+15,el+10"]),
+    "courtyard_s1": ("courtyard", 8, "480x360", 1, []),
+    "street_s0": ("street", 8, "480x360", 0, []),
+    "street_s2": ("street", 8, "480x360", 2, []),
+    "demo_480": ("courtyard", 6, "480x360", 0, ["--sun=-120,35", "--degrade", "voxel_size=0.08"]),
+    "courtyard_1000": ("courtyard", 6, "1000x750", 2, ["--relit", "none"]),
 }
 METHODS = ("paper", "multiview")
 #: At most this many proxy vertices are tested for cross-view agreement (every k-th).

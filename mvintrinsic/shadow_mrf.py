@@ -211,8 +211,8 @@ class ShadowConfig:
         Which labelling the pipeline's Step 3 runs. ``"paper"``: this module, Sec. 6.1 per view and
         per cluster, with the parameters below. ``"multiview"`` (default): all views at once at
         pixel resolution (:mod:`mvintrinsic.multiview_shadows`, configured by
-        ``Config.multiview``), which measured half the paper's balanced error or less on every
-        scene of ``benchmarks/bench_shadows.py``; the parameters below are then unused.
+        ``Config.multiview``), which measured 0.33-0.54 of the paper's balanced error on the seven
+        scenes of ``benchmarks/bench_shadows.py``; the parameters below are then unused.
     k : int
         Number of best partners: the clusters summed in ``H_0``, ``H_1`` (Eqs. 8-9), ``H'_0``,
         ``H'_1`` (Eq. 12), and the reflectance edges per cluster (Eq. 14). The paper names ``k``

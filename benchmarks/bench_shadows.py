@@ -26,8 +26,8 @@ views as ``mvintrinsic.evaluation.evaluate`` scores them:
 
 Scenes: the embedded demo (240x180), ``../shared/datasets/dev_courtyard`` (320x240) and the
 scenes below under ``--data`` (default ``../data`` beside the checkout), rendered by
-``mvintrinsic synth`` (``--make`` renders the missing ones; about 15 minutes each at 480x360 and
-half an hour at 1000x750 on 2 cores)::
+``mvintrinsic synth`` (``--make`` renders the missing ones; about 15 minutes each at 480x360 with
+three relit suns, 20 with the five of today's default, and half an hour at 1000x750 on 2 cores)::
 
     mvintrinsic synth courtyard DATA/courtyard_s1 --views 8 --size 480x360 --seed 1
     mvintrinsic synth street DATA/street_s0 --views 8 --size 480x360 --seed 0

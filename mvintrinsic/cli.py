@@ -240,11 +240,14 @@ def _parse_knob(text: str, current: object) -> object:
 def _cmd_synth(args: argparse.Namespace) -> int:
     from dataclasses import fields
 
-    from .synth.dataset import SynthConfig, synthesize, with_overrides
+    from .synth.dataset import DEFAULT_RELIT, SynthConfig, synthesize, with_overrides
 
+    if args.relit is None:
+        relit = DEFAULT_RELIT
+    else:
+        relit = tuple(t for t in args.relit.split(",") if t) if args.relit != "none" else ()
     config = SynthConfig(n_views=args.views, width=args.size[0], height=args.size[1], seed=args.seed,
-                         gloss=args.gloss, hfov_deg=args.hfov,
-                         relit=tuple(t for t in args.relit.split(",") if t) if args.relit != "none" else ())
+                         gloss=args.gloss, hfov_deg=args.hfov, relit=relit)
     if args.sun is not None:
         config = with_overrides(config, sun_azimuth_deg=args.sun[0], sun_elevation_deg=args.sun[1])
     changes = {"render_spp": args.spp, "render_sun": not args.overcast, "render_turbidity": args.turbidity}
@@ -309,8 +312,9 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--seed", type=int, default=0, help="seed of the recipe, sun, sampler and proxy")
     synth.add_argument("--sun", type=_parse_sun, default=None, help="AZIMUTH,ELEVATION in degrees, e.g. --sun=-30,40 (default: drawn from the seed)")
     synth.add_argument("--hfov", type=float, default=60.0, help="horizontal field of view, degrees")
-    synth.add_argument("--relit", default=",".join(("az+15", "az-30", "el+10")),
-                       help="comma-separated relit tags like az+15,el+10, or 'none'")
+    synth.add_argument("--relit", default=None,
+                       help="comma-separated relit tags like az+15,el+10, or 'none' "
+                            "(default az+15,az-15,az+30,az-30,el+10: synth.dataset.DEFAULT_RELIT)")
     synth.add_argument("--degrade", action="append", default=[], metavar="KNOB=VALUE",
                        help="proxy degradation, e.g. depth_noise=0.02 (repeatable)")
     synth.add_argument("--turbidity", type=float, default=3.0, help="sky turbidity (default 3)")

@@ -135,6 +135,8 @@ def test_default_proxy_is_close_and_loses_foliage():
 
 
 def test_config_validation_and_overrides():
+    # The suns bench_relight scores relighting at (issue 15).
+    assert SynthConfig().relit == ("az+15", "az-15", "az+30", "az-30", "el+10")
     with pytest.raises(ValueError, match="relit tag"):
         SynthConfig(relit=("sideways",))
     with pytest.raises(ValueError, match="n_views"):

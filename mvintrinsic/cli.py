@@ -140,6 +140,10 @@ def _print_decomposition(result, scene: Scene) -> None:
     print(f"seconds      step1 {step1:.2f}, {others} ({len(scene.views)} views)")
 
 
+#: The demo's relit sequence: this many suns, the capture azimuth +- this many degrees.
+DEMO_FRAMES, DEMO_SWEEP = 9, 30.0
+
+
 def _cmd_demo(args: argparse.Namespace) -> int:
     from .io import save_decomposition
     from .pipeline import decompose
@@ -165,6 +169,15 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     print(f"previews     {len(written)} ground-truth PNGs in {out / 'ground_truth'}/")
     print(f"scores       LMSE reflectance {scores['lmse_reflectance']:.4f}, shading {scores['lmse_shading']:.4f}, "
           f"shadow BER {scores['ber']:.3f} (mean over views, vs gt/)")
+    from .relight import Relighter
+
+    azimuth, elevation = azimuth_elevation(result.lighting.sun.direction, up=scene.up)
+    azimuths = azimuth + np.linspace(-DEMO_SWEEP, DEMO_SWEEP, DEMO_FRAMES)
+    whites = {v.stem: float(np.percentile(v.image[np.isfinite(v.image)], 99)) for v in scene.views}
+    _write_relit_sequence(Relighter(result, scene), out / "relit", azimuths, elevation, whites,
+                          quiet=not sys.stderr.isatty())
+    print(f"relit        {DEMO_FRAMES} suns from azimuth {azimuths[0]:.0f} to {azimuths[-1]:.0f} degrees: PNG frames "
+          f"and one animated GIF per view in {out / 'relit'}/ (paper Sec. 8)")
     return 0
 
 
@@ -208,6 +221,57 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
         _print_decomposition(result, scene)
     print(f"wrote {folder}: {len(result.layers)} views")
     return 0
+
+
+def _cmd_relight(args: argparse.Namespace) -> int:
+    from .io import _prepare_result_folder, load_decomposition, write_image
+    from .preview import tonemap
+    from .relight import Relighter, as_sun_direction
+
+    if (args.azimuth is None) == (args.sequence is None):
+        raise ValueError("give either --azimuth A or --sequence START END STEPS (azimuths in degrees)")
+    if args.sequence is not None and (args.sequence[2] < 2 or args.sequence[2] != int(args.sequence[2])):
+        raise ValueError(f"--sequence STEPS must be an integer >= 2, got {args.sequence[2]!r}")
+    scene = load_scene(args.scene, progress=not args.quiet)
+    azimuths = [args.azimuth] if args.azimuth is not None else np.linspace(*args.sequence[:2], int(args.sequence[2]))
+    for azimuth in (azimuths[0], azimuths[-1]):  # a bad sun is refused before anything is read or written
+        as_sun_direction((float(azimuth), args.elevation), up=scene.up)
+    decomposition = load_decomposition(args.result)
+    out = _prepare_result_folder(args.out, overwrite=args.overwrite, scene=scene)
+    relighter = Relighter(decomposition, scene)
+    whites = {v.stem: float(np.percentile(v.image[np.isfinite(v.image)], 99)) for v in scene.views}
+    if args.azimuth is not None:
+        images = relighter.render((args.azimuth, args.elevation))
+        for stem, image in images.items():
+            write_image(out / f"{stem}.exr", image)
+            write_image(out / f"{stem}.png", tonemap(image, white=whites[stem]), dtype="uint8")
+        print(f"wrote {out}: {len(images)} views relit at azimuth {args.azimuth:g}, elevation {args.elevation:g}")
+        return 0
+    _write_relit_sequence(relighter, out, azimuths, args.elevation, whites, quiet=args.quiet)
+    print(f"wrote {out}: {len(azimuths)} frames per view (azimuth {azimuths[0]:g} to {azimuths[-1]:g}, "
+          f"elevation {args.elevation:g}), one animated GIF per view")
+    return 0
+
+
+def _write_relit_sequence(relighter, out: Path, azimuths, elevation: float, whites: dict[str, float], *,
+                          quiet: bool) -> None:
+    """PNG frames ``out/frames/<stem>/frame_###.png`` and an animated ``out/<stem>.gif`` per view."""
+    from PIL import Image
+    from tqdm.auto import tqdm
+
+    from .io import _atomic_write, write_image
+    from .preview import tonemap
+
+    frames: dict[str, list[np.ndarray]] = {stem: [] for stem in whites}
+    for k, azimuth in enumerate(tqdm(azimuths, desc="relight", unit="sun", disable=quiet)):
+        for stem, image in relighter.render((float(azimuth), elevation)).items():
+            frame = tonemap(image, white=whites[stem])
+            write_image(out / "frames" / stem / f"frame_{k:03d}.png", frame, dtype="uint8")
+            frames[stem].append(frame)
+    for stem, sequence in frames.items():
+        pictures = [Image.fromarray(f) for f in sequence]
+        _atomic_write(out / f"{stem}.gif", lambda tmp, pictures=pictures: pictures[0].save(
+            tmp, format="GIF", save_all=True, append_images=pictures[1:], duration=100, loop=0))
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -323,6 +387,19 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(run=_cmd_synth)
+
+    rel = commands.add_parser("relight", help="relight a decomposed scene under a new sun (paper Sec. 8)")
+    rel.add_argument("scene", type=Path, help="scene folder the result was decomposed from")
+    rel.add_argument("result", type=Path, help="result folder written by `mvintrinsic decompose`")
+    rel.add_argument("out", type=Path, help="output folder (absent, empty, or a previous output)")
+    rel.add_argument("--azimuth", type=float, default=None,
+                     help="sun azimuth in degrees, in the scene's horizontal frame (docs/conventions.md)")
+    rel.add_argument("--elevation", type=float, required=True, help="sun elevation in degrees (> 0)")
+    rel.add_argument("--sequence", type=float, nargs=3, default=None, metavar=("START", "END", "STEPS"),
+                     help="a sequence of STEPS suns from azimuth START to END: PNG frames and a GIF per view")
+    rel.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT")
+    rel.add_argument("--quiet", action="store_true", help="no progress bars")
+    rel.set_defaults(run=_cmd_relight)
     return parser
 
 

@@ -5,9 +5,13 @@ from __future__ import annotations
 import subprocess
 import sys
 
+import numpy as np
+
 from mvintrinsic import load_decomposition, load_scene
-from mvintrinsic.cli import demo_scene_path
+from mvintrinsic.cli import DEMO_FRAMES, demo_scene_path
+from mvintrinsic.cli import main as cli
 from mvintrinsic.io import read_image
+from mvintrinsic.relight import relight
 
 DEMO_MAX_BYTES = 10 * 1024 * 1024  # issue 3: the embedded demo is at most 10 MB
 
@@ -43,3 +47,34 @@ def test_demo_command_runs_without_mitsuba(tmp_path):
     assert tile.shape[:2] == (2 * scene.views[0].shape[0], 5 * scene.views[0].shape[1])  # estimate over truth
     for name in ("image", "reflectance", "shading", "sun_shading", "env_shading", "sun_visibility"):
         assert len(list((out / "ground_truth" / name).glob("*.png"))) == views, name
+    # The demo ends with a relit sequence (issue 15): PNG frames and an animated GIF per view.
+    from PIL import Image
+
+    for view in scene.views:
+        assert len(list((out / "relit" / "frames" / view.stem).glob("frame_*.png"))) == DEMO_FRAMES
+        with Image.open(out / "relit" / f"{view.stem}.gif") as gif:
+            assert gif.n_frames == DEMO_FRAMES
+
+    # `mvintrinsic relight` on the demo's result: one sun as linear EXR + PNG, equal to relight().
+    assert cli(["relight", str(demo_scene_path()), str(out / "result"), str(tmp_path / "one"),
+                "--azimuth", "-100", "--elevation", "40", "--quiet"]) == 0
+    expected = relight(result, scene, sun=(-100.0, 40.0))
+    for view in scene.views:
+        image, _ = read_image(tmp_path / "one" / f"{view.stem}.exr")
+        np.testing.assert_allclose(image, expected[view.stem], rtol=1e-6, atol=1e-7)
+        assert (tmp_path / "one" / f"{view.stem}.png").is_file()
+    first, last = (np.asarray(Image.open(out / "relit" / "frames" / scene.views[0].stem / f"frame_{k:03d}.png"),
+                              dtype=float) for k in (0, DEMO_FRAMES - 1))
+    assert np.abs(first - last).mean() > 1.0  # the shadows and shading moved between the first and last sun
+
+
+def test_relight_command_refuses_bad_input(tmp_path, capsys):
+    demo = str(demo_scene_path())
+    # A sun below the horizon is refused before anything is written; so is a folder that is no result.
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--azimuth", "0", "--elevation", "-5"]) == 2
+    assert "above the horizon" in capsys.readouterr().err
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--azimuth", "0", "--elevation", "30"]) == 2
+    assert "lighting.json" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--elevation", "30"]) == 2
+    assert "--azimuth" in capsys.readouterr().err

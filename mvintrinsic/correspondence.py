@@ -76,15 +76,17 @@ class Correspondences:
 
     def seen_by(self, stem: str) -> np.ndarray:
         """``(H, W)`` int: number of other views that see each pixel's proxy point."""
-        total = sum((self.index[stem, other] >= 0).astype(np.int64) for other in self.pairs(stem))
-        return np.reshape(total if len(self.stems) > 1 else np.zeros(int(np.prod(self.shapes[stem])), np.int64),
-                          self.shapes[stem])
+        return self._count(stem, {other: self.index[stem, other] >= 0 for other in self.pairs(stem)})
 
     def agreeing(self, stem: str) -> np.ndarray:
         """``(H, W)`` int: number of other views whose correspondence is consistent."""
-        total = sum(self.consistent[stem, other].astype(np.int64) for other in self.pairs(stem))
-        return np.reshape(total if len(self.stems) > 1 else np.zeros(int(np.prod(self.shapes[stem])), np.int64),
-                          self.shapes[stem])
+        return self._count(stem, {other: self.consistent[stem, other] for other in self.pairs(stem)})
+
+    def _count(self, stem: str, flags: Mapping[str, np.ndarray]) -> np.ndarray:
+        total = np.zeros(int(np.prod(self.shapes[stem])), dtype=np.int64)
+        for flag in flags.values():
+            total += flag
+        return total.reshape(self.shapes[stem])
 
     def __repr__(self) -> str:
         return f"Correspondences({len(self.stems)} views, depth_tolerance={self.depth_tolerance}, " \

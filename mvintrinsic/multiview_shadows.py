@@ -87,9 +87,10 @@ from dataclasses import dataclass
 from types import MappingProxyType
 
 import numpy as np
+from scipy import ndimage
 
-from ._validation import as_array, describe, is_real
-from .correspondence import Correspondences, find_correspondences, fuse_views, log_image
+from ._validation import as_array, as_unit_vector, describe, is_real
+from .correspondence import Correspondences, _check_views, find_correspondences, fuse_views, log_image
 from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
 from .scene import View
@@ -259,12 +260,16 @@ class ReflectancePalette:
     def log_density(self, log_reflectance: np.ndarray, *, floor: float = 1e-7) -> np.ndarray:
         """``log(p + floor)`` of each log-RGB reflectance ``(N, 3)``; ``log(floor)`` outside the histogram."""
         r = np.asarray(log_reflectance, dtype=np.float64).reshape(-1, 3)
-        index = np.floor((r @ LOG_CHROMA.T) / self.bins).astype(np.int64) - self.origin
-        inside = np.all((index >= 0) & (index < np.array(self.density.shape)), axis=1)
-        out = np.full(len(r), np.log(floor))
-        k = np.flatnonzero(inside)
-        out[k] = np.log(self.density[index[k, 0], index[k, 1], index[k, 2]] + floor)
-        return out
+        return self.log_density_of_bins(np.floor((r @ LOG_CHROMA.T) / self.bins), floor=floor)
+
+    def log_density_of_bins(self, bins: np.ndarray, *, floor: float = 1e-7) -> np.ndarray:
+        """``log(p + floor)`` of bin indices ``(..., 3)`` (as :func:`visibility_curve_bins` gives them)."""
+        index = np.asarray(bins, dtype=np.int64) - self.origin
+        shape = np.array(self.density.shape)
+        inside = np.all((index >= 0) & (index < shape), axis=-1)
+        flat = (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
+        table = np.log(self.density + floor).ravel()
+        return np.where(inside, table[np.where(inside, flat, 0)], np.log(floor))
 
     def __repr__(self) -> str:
         return f"ReflectancePalette({'x'.join(map(str, self.density.shape))} bins of {self.bins.tolist()})"
@@ -291,8 +296,6 @@ def build_palette(log_reflectance: np.ndarray, weights: np.ndarray | None = None
         The bins span the samples' 0.1-99.9 percentiles plus a margin of 3 sigma; samples outside
         are left out.
     """
-    from scipy import ndimage
-
     samples = as_array(log_reflectance, "log_reflectance", shape=(None, 3), dtype=np.float64)
     w = np.ones(len(samples)) if weights is None else as_array(weights, "weights", shape=(len(samples),),
                                                                 dtype=np.float64)
@@ -371,13 +374,8 @@ def visibility_curve_bins(log_image: np.ndarray, env: np.ndarray, sun: np.ndarra
 def _curve_visibility(curve: np.ndarray, palette: ReflectancePalette, *, floor: float = 1e-7
                       ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`palette_visibility` from precomputed :func:`visibility_curve_bins`."""
-    n, levels, _ = curve.shape
-    table = np.log(palette.density + floor).ravel()
-    shape = np.array(palette.density.shape)
-    index = curve - palette.origin.astype(np.int32)
-    inside = np.all((index >= 0) & (index < shape), axis=2)
-    flat = (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
-    logp = np.where(inside, table[np.where(inside, flat, 0)], np.log(floor))
+    levels = curve.shape[1]
+    logp = palette.log_density_of_bins(curve, floor=floor)
     top = logp.max(axis=1)
     gain = top - np.median(logp, axis=1)
     # Levels whose reflectances share the best bin tie; take their mean, not the first (which would
@@ -469,7 +467,7 @@ def albedo_term(r0: np.ndarray, r1: np.ndarray, *, albedo_max: float = 1.0) -> n
     return over0 - over1
 
 
-def proxy_prior(visibility: np.ndarray, *, lit: float = 0.05, shadow: float = 0.3) -> np.ndarray:
+def proxy_prior(visibility: np.ndarray, *, lit: float = 0.05, shadow: float = 0.2) -> np.ndarray:
     """``lit (2 ~v - 1)`` where ``~v >= 1/2``, ``shadow (2 ~v - 1)`` below (module docstring, term 4)."""
     v = np.clip(np.asarray(visibility, dtype=np.float64), 0.0, 1.0)
     return np.where(v >= 0.5, lit, shadow) * (2.0 * v - 1.0)
@@ -578,14 +576,15 @@ class MultiViewShadowLabels:
     views : mapping of str to PixelShadowLabels
         Per view, in stem order.
     palette : ReflectancePalette or None
-        The last palette (None when ``iterations`` is 0 or there is no sun).
+        The last palette of the surfaces not facing up (of all surfaces with
+        ``palette_groups="none"``); None when ``iterations`` is 0 or there is no sun.
     correspondences : Correspondences or None
         The cross-view correspondences used (None for a single view or ``view_weight`` 0).
     changed : tuple of float
         Per palette round, the share of valid pixels whose label changed.
     timings : mapping of str to float
         Seconds summed over views: ``evidence``, ``correspondences``, ``palette``, ``fusion``,
-        ``graph_cut``.
+        ``graph_cut``, ``consensus``.
     """
 
     views: Mapping[str, PixelShadowLabels]
@@ -614,8 +613,6 @@ class _Evidence:
 
     valid: np.ndarray
     a: np.ndarray
-    env: np.ndarray
-    sun: np.ndarray
     r0: np.ndarray
     r1: np.ndarray
     base: np.ndarray
@@ -645,8 +642,7 @@ def _evidence(view: View, q: PixelQuantities, radiance: np.ndarray, config: Mult
         group = (np.asarray(q.normals, dtype=np.float64)[valid] @ up > ORIENTATION_COS).astype(np.int64)
     else:
         group = np.zeros(int(valid.sum()), dtype=np.int64)
-    return _Evidence(valid=valid, a=a, env=env, sun=sun, r0=r0, r1=r1, base=np.where(valid, base, 0.0), curve=curve,
-                     group=group)
+    return _Evidence(valid=valid, a=a, r0=r0, r1=r1, base=np.where(valid, base, 0.0), curve=curve, group=group)
 
 
 def label_shadows_multiview(
@@ -691,21 +687,7 @@ def label_shadows_multiview(
     config = MultiViewShadowConfig() if config is None else config
     if not isinstance(config, MultiViewShadowConfig):
         raise TypeError(f"config must be a MultiViewShadowConfig, got {describe(config)}")
-    if isinstance(views, View) or not isinstance(views, Sequence) or not views:
-        raise TypeError(f"views must be a non-empty sequence of View, got {describe(views)}")
-    if not isinstance(quantities, Mapping):
-        raise TypeError(f"quantities must be a mapping of stem to PixelQuantities, got {describe(quantities)}")
-    ordered = sorted(views, key=lambda v: getattr(v, "stem", ""))
-    for view in ordered:
-        if not isinstance(view, View):
-            raise TypeError(f"views must hold View objects, got {describe(view)}")
-        q = quantities.get(view.stem)
-        if not isinstance(q, PixelQuantities):
-            raise ValueError(f"quantities: no PixelQuantities for view {view.stem!r}")
-        if q.shape != view.shape:
-            raise ValueError(f"quantities[{view.stem!r}] is {q.shape}, its view {view.shape}")
-    if len({v.stem for v in ordered}) != len(ordered):
-        raise ValueError("views: a stem appears twice")
+    ordered = _check_views(views, quantities)
     radiance = _check_sun(sun_radiance)
     timings = dict.fromkeys(("evidence", "correspondences", "palette", "fusion", "graph_cut", "consensus"), 0.0)
     stems = [v.stem for v in ordered]
@@ -722,7 +704,7 @@ def label_shadows_multiview(
 
     start = time.perf_counter()
     offsets = edge_offsets(config.edge_radii, config.edge_directions)
-    up = np.asarray(up, dtype=np.float64) / np.linalg.norm(up)
+    up = as_unit_vector(up, "up")
     evidence = {v.stem: _evidence(v, quantities[v.stem], radiance, config, offsets, up) for v in ordered}
     timings["evidence"] = time.perf_counter() - start
 

@@ -48,6 +48,7 @@ __all__ = [
     "step1",
     "subdivide",
     "sun_visibility",
+    "triangle_scene",
     "tangent_frames",
     "vertex_radiance",
     "voxel_subsample",
@@ -104,6 +105,34 @@ def _check_rays(origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray
     return origins, directions
 
 
+def triangle_scene(vertices: np.ndarray, triangles: np.ndarray):
+    """An open3d ``RaycastingScene`` (Embree) over a triangle mesh, its BVH already built.
+
+    Parameters
+    ----------
+    vertices : (V, 3) array_like
+        World coordinates (stored as float32).
+    triangles : (T, 3) array_like
+        Vertex indices (stored as uint32).
+
+    Returns
+    -------
+    open3d.t.geometry.RaycastingScene
+        Embree builds its BVH on the first query; one is made here, so that construction carries
+        the cost rather than the first real query.
+    """
+    ensure_libusb()
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(
+        o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
+        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
+    )
+    scene.test_occlusions(o3d.core.Tensor(np.zeros((1, 6), dtype=np.float32)))
+    return scene
+
+
 class Tracer:
     """Embree acceleration structure over a :class:`~mvintrinsic.scene.Proxy`.
 
@@ -140,14 +169,8 @@ class Tracer:
         else:
             vertices, triangles = self._surfels(proxy, surfel_scale, surfel_neighbors)
             self._triangle_vertices = None
-        self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(
-            o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-            o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
-        )
+        self._scene = triangle_scene(vertices, triangles)
         self._o3c = o3d.core
-        # Embree builds its BVH on the first query: do it now, so construction carries the cost.
-        self._scene.test_occlusions(o3d.core.Tensor(np.zeros((1, 6), dtype=np.float32)))
 
     @staticmethod
     def _surfels(proxy: Proxy, scale: float, k: int) -> tuple[np.ndarray, np.ndarray]:

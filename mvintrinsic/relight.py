@@ -200,12 +200,11 @@ from types import MappingProxyType
 import numpy as np
 from scipy import ndimage
 
-from ._libusb import ensure_libusb
 from ._validation import as_array, as_unit_vector, describe, is_real
 from .camera import Camera
 from .image_model import LUMINANCE_WEIGHTS
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, Tracer
+from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
 from .raytrace import sun_visibility as proxy_vertex_visibility
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene, Sun
@@ -446,20 +445,6 @@ def _image_array(value: object, name: str, shape: tuple[int, ...] | None, dtype:
     return as_array(value, name, shape=expected, dtype=dtype, finite=finite)
 
 
-def _to_scene(vertices: np.ndarray, triangles: np.ndarray):
-    """An open3d RaycastingScene over a non-empty triangle mesh, its BVH built."""
-    ensure_libusb()
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
-    )
-    scene.test_occlusions(o3d.core.Tensor(np.zeros((1, 6), dtype=np.float32)))  # build the BVH now
-    return scene
-
-
 def _rays(origins: np.ndarray, direction: np.ndarray):
     import open3d as o3d
 
@@ -496,17 +481,19 @@ def receiver_depth(camera: Camera, tracer: Tracer) -> tuple[np.ndarray, np.ndarr
     ValueError
         If no pixel ray hits the proxy.
     """
-    camera = _check_camera(camera)
-    tracer = _check_tracer(tracer)
-    t = tracer.intersect(camera.center, camera.pixel_rays()).t.reshape(camera.shape)
+    _, depth, hit = _cast_pixels(_check_camera(camera), _check_tracer(tracer))
+    return depth, hit
+
+
+def _cast_pixels(camera: Camera, tracer: Tracer, batch: int = DEFAULT_BATCH, name: str = "tracer"):
+    """The camera rays' hits on the proxy, their distances with misses filled from the nearest hit,
+    and where they hit; a ``ValueError`` starting with ``name`` when none does."""
+    hits = tracer.intersect(camera.center, camera.pixel_rays(), batch=batch)
+    t = hits.t.reshape(camera.shape)
     hit = np.isfinite(t)
     if not hit.any():
-        raise ValueError(f"tracer: no pixel ray of camera {camera!r} hits the proxy")
-    depth = t
-    if not hit.all():
-        rows, cols = ndimage.distance_transform_edt(~hit, return_distances=False, return_indices=True)
-        depth = t[rows, cols]
-    return depth, hit
+        raise ValueError(f"{name}: no pixel ray of camera {camera!r} hits the proxy")
+    return hits, nearest_fill(t, hit), hit
 
 
 def receiver_points(camera: Camera, depth: np.ndarray) -> np.ndarray:
@@ -757,11 +744,7 @@ def build_caster(
 
     # Missed rays take the distance of the nearest kept pixel whose ray hit.
     valid = kept & hit
-    lift = t
-    if not valid[kept].all():
-        near_r, near_c = ndimage.distance_transform_edt(~valid, return_distances=False, return_indices=True)
-        lift = np.where(valid, t, t[near_r, near_c])
-    lift = np.where(kept, lift, 0.0)
+    lift = np.where(kept, nearest_fill(t, valid), 0.0)
 
     # Receiver distance from the camera centre (along the pixel ray for receiver_points' points).
     ray_distance = np.linalg.norm(receiver - camera.center, axis=-1)
@@ -771,7 +754,7 @@ def build_caster(
     counts = np.zeros(len(triangles), dtype=np.int64)
     lit_points = receiver[lit]
     if len(lit_points):
-        scene = _to_scene(vertices, triangles)
+        scene = triangle_scene(vertices, triangles)
         for start in range(0, len(lit_points), batch):
             origins = lit_points[start:start + batch] + offset * sun
             ids = scene.cast_rays(_rays(origins, sun))["primitive_ids"].numpy()
@@ -835,7 +818,7 @@ class ShadowCaster:
         if not isinstance(caster, Caster):
             raise TypeError(f"caster must be a Caster, got {describe(caster)}")
         self.caster = caster
-        self._scene = _to_scene(caster.vertices, caster.triangles) if len(caster.triangles) else None
+        self._scene = triangle_scene(caster.vertices, caster.triangles) if len(caster.triangles) else None
 
     def occluded(self, origins: np.ndarray, sun_direction: np.ndarray, *, batch: int = DEFAULT_BATCH) -> np.ndarray:
         """Whether the caster blocks each ray ``origins + s d``, ``s > 0``; (N,) bool.
@@ -1004,8 +987,6 @@ def as_sun_direction(sun: object, *, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.nda
 def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int]) -> np.ndarray:
     """Unit proxy normals of a view's pixels from its camera-ray ``hits`` (see :func:`receiver_normals`)."""
     covered = hits.hit.reshape(shape)
-    if not covered.any():
-        raise ValueError("no pixel ray hits the proxy")
     normals = tracer.interpolate(tracer.proxy.normals, hits).reshape(*shape, 3)
     length = np.linalg.norm(np.nan_to_num(normals), axis=-1)
     # Opposite vertex normals can cancel in the interpolation: take the hit's geometric normal there.
@@ -1043,11 +1024,8 @@ def receiver_normals(camera: Camera, tracer: Tracer) -> np.ndarray:
     """
     camera = _check_camera(camera)
     tracer = _check_tracer(tracer)
-    hits = tracer.intersect(camera.center, camera.pixel_rays())
-    try:
-        return _pixel_normals(tracer, hits, camera.shape)
-    except ValueError:
-        raise ValueError(f"tracer: no pixel ray of camera {camera!r} hits the proxy") from None
+    hits, _, _ = _cast_pixels(camera, tracer)
+    return _pixel_normals(tracer, hits, camera.shape)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1369,14 +1347,7 @@ class Relighter:
         for view in scene.views:
             stem, camera = view.stem, view.camera
             start = time.perf_counter()
-            ray_hits = tracer.intersect(camera.center, camera.pixel_rays(), batch=batch)
-            t = ray_hits.t.reshape(camera.shape)
-            hit = np.isfinite(t)
-            if not hit.any():
-                raise ValueError(f"scene: no pixel ray of view {stem!r} hits the proxy")
-            if not hit.all():
-                rows, cols = ndimage.distance_transform_edt(~hit, return_distances=False, return_indices=True)
-                t = t[rows, cols]
+            ray_hits, t, hit = _cast_pixels(camera, tracer, batch, name=f"scene (view {stem!r})")
             receivers[stem] = _read_only(receiver_points(camera, t))
             normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape))
             hits[stem] = ray_hits

@@ -70,9 +70,9 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .._libusb import ensure_libusb
 from .._validation import describe
 from ..camera import Camera
+from ..raytrace import triangle_scene
 from ..scene import Proxy
 from .types import LABELS
 
@@ -267,16 +267,6 @@ def _check_cameras(cameras: object) -> list[Camera]:
     return cameras
 
 
-def _raycasting_scene(vertices: np.ndarray, triangles: np.ndarray):
-    ensure_libusb()
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(
-        o3d.core.Tensor(np.ascontiguousarray(vertices, dtype=np.float32)),
-        o3d.core.Tensor(np.ascontiguousarray(triangles, dtype=np.uint32)),
-    )
-    return scene
 
 
 def _cast(scene, origin: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -676,7 +666,7 @@ def simulate_mvs_proxy(
     areas = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
     keep_face = _surviving_faces((a + b + c) / 3.0, areas, labels, config, rng)
     lossy_face = np.isin(labels, [LABELS.index("foliage"), LABELS.index("thin")])
-    scene = _raycasting_scene(vertices, triangles)
+    scene = triangle_scene(vertices, triangles)
 
     with tqdm(total=2 * len(cameras), desc="MVS proxy", unit="view", disable=not progress) as bar:
         depths = []
@@ -720,7 +710,7 @@ def distance_to_mesh(points: np.ndarray, vertices: np.ndarray, triangles: np.nda
         return np.zeros(0)
     import open3d as o3d
 
-    scene = _raycasting_scene(vertices, triangles)
+    scene = triangle_scene(vertices, triangles)
     query = o3d.core.Tensor(np.ascontiguousarray(points, dtype=np.float32))
     return scene.compute_distance(query).numpy().astype(np.float64)
 
@@ -857,7 +847,7 @@ def label_retention(
     if max_depth is not None and not max_depth > 0:
         raise ValueError(f"max_depth must be positive (metres) or None, got {max_depth!r}")
 
-    scene = _raycasting_scene(vertices, triangles)
+    scene = triangle_scene(vertices, triangles)
     points, point_labels = [], []
     for camera in cameras:
         pixels = camera.pixel_centers()[::stride, ::stride].reshape(-1, 2)

@@ -1,6 +1,6 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
-    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...]
+    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -33,13 +33,19 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
   seen by two or more views whose relit visibility ``>= 0.5`` is the same in all of them
   (:func:`mvintrinsic.correspondence.cross_view_agreement`, Step 1's pixel quantities as Step 3
   uses them); ``truth`` is the same measure on ``gt/relit/<tag>/sun_visibility``;
-* ``caster_study``: rows (d) and (e) with ``min_proxy_hits`` 0.3 (the paper's) and 0 (keep every
-  cluster of >= 100 pixels), each with the merged caster and with every view's own caster, and
-  without bringing the dropped clusters into light;
+* ``caster_study``: rows (d) and (e) under other :class:`~mvintrinsic.relight.RelightConfig`
+  options, one changed at a time from the default: the merged caster, the paper's checks
+  (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
+  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, and without bringing the
+  dropped clusters into light;
 * ``mesh_visibility_iou``: row (c)'s shadow (``< 0.5``) against ``gt/relit/<tag>/sun_visibility``
   over the non-sky pixels, without and with the blur (a check of the bound);
 * ``seconds_per_view``: building the relighter (receivers, casters, merged caster and BVH) and
   rendering one sun, per view; ``decompose_seconds``.
+
+``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
+and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
+scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``.
 
 Run with the package importable; the demo takes about 30 s on 2 cores (9 s of it decomposing).
 """
@@ -82,6 +88,8 @@ ROOT = Path(__file__).resolve().parents[2]
 CLIP_PERCENTILE = 99.5
 #: At most this many proxy vertices are tested for cross-view agreement (every k-th).
 AGREEMENT_POINTS = 300_000
+#: The relit suns shown in the figure (all of a scene's when it has none of them).
+FIGURE_TAGS = ("az+15", "az-15")
 ROWS = ("input", "gt_proxy", "gt_mesh", "gt_mesh_blurred", "gt_caster", "pipeline")
 
 
@@ -143,13 +151,6 @@ class MeshShadow:
     def visibility(self, direction: np.ndarray, config: RelightConfig) -> dict:
         return {s: self.caster.sun_visibility(self.points[s], self.normals[s], direction, config=config)
                 for s in self.points}
-
-
-def own_casters(relighter: Relighter, direction: np.ndarray) -> dict:
-    """Every view shaded by its own caster only (no merging), with the proxy completion and blur."""
-    return {s: ShadowCaster(relighter.casters[s]).sun_visibility(
-        relighter.receivers[s], None, direction, proxy_tracer=relighter.tracer, up=relighter.up,
-        config=relighter.config) for s in relighter.stems}
 
 
 def caster_summary(relighter: Relighter) -> dict:
@@ -261,19 +262,24 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
 def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) -> dict:
     """Rows (d) and (e) under other caster options (the default environment adjustment)."""
     out = {}
-    variants = {"paper (min_proxy_hits 0.3), merged": (RelightConfig(), False),
-                "paper (min_proxy_hits 0.3), own caster per view": (RelightConfig(), True),
-                "min_proxy_hits 0, merged": (RelightConfig(min_proxy_hits=0.0), False),
-                "min_proxy_hits 0, own caster per view": (RelightConfig(min_proxy_hits=0.0), True),
-                "paper, dropped clusters not brought into light": (RelightConfig(light_dropped=False), False)}
-    for label, (config, own) in variants.items():
+    default = RelightConfig()
+    variants = {"default (multiview votes, own casters)": default,
+                "multiview votes, merged caster": RelightConfig(casters="merged"),
+                "paper (own view's votes, full completion, own casters)": RelightConfig(method="paper"),
+                "paper, merged caster": RelightConfig(method="paper", casters="merged"),
+                "default, completion_distance 0": RelightConfig(completion_distance=0.0),
+                "default, min_proxy_hits 0": RelightConfig(min_proxy_hits=0.0),
+                "default, min_cluster 20": RelightConfig(min_cluster=20),
+                "default, no blur": RelightConfig(blur=0.0),
+                "default, dropped clusters not brought into light": RelightConfig(light_dropped=False)}
+    for label, config in variants.items():
         out[label] = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):
             relighter = Relighter(decomposition, scene, config=config, tracer=tracer)
             row = {"triangles": len(relighter.caster.triangles)}
             suns = {"capture": (relighter.sun, inputs)} | {t: (d, images) for t, (d, images, _) in tags.items()}
             for tag, (direction, images) in suns.items():
-                visibility = own_casters(relighter, direction) if own else relighter.visibility_at(direction)
+                visibility = relighter.visibility_at(direction)
                 row[tag] = mean_psnr(relighter.render(direction, visibility=visibility), images, sky_mask)["mean"]
             out[label][name] = row
         scores = [f"{n} " + " ".join(f"{t} {v:.2f}" for t, v in r.items() if t != "triangles")
@@ -282,14 +288,45 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) ->
     return out
 
 
+def time_scene(folder: Path, n_suns: int = 5) -> dict:
+    """Seconds per view to build the relighter of the ground-truth layers and to relight one sun.
+
+    For scenes without relit renders (e.g. the 1000x750 speed scene): the caster is built from the
+    ground-truth labels and ``n_suns`` suns 5 to 25 degrees of azimuth from the capture are
+    rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading).
+    """
+    scene = load_scene(folder)
+    stems = scene.stems
+    tracer = Tracer(scene.proxy)
+    ground_truth = ground_truth_decomposition(folder, views=list(stems))
+    start = time.perf_counter()
+    relighter = Relighter(ground_truth, scene, tracer=tracer)
+    build = time.perf_counter() - start
+    azimuth, elevation = azimuth_elevation(scene.sun.direction, up=scene.up)
+    suns = [(azimuth + delta, elevation) for delta in np.linspace(5.0, 25.0, n_suns)]
+    relighter.render(suns[0])  # warm-up
+    start = time.perf_counter()
+    for sun in suns:
+        relighter.render(sun)
+    per_sun = (time.perf_counter() - start) / n_suns
+    h, w = scene.views[0].shape
+    out = {"size": f"{w}x{h}", "views": len(stems), "proxy_triangles": len(scene.proxy.triangles),
+           "build_per_view": build / len(stems), **{k: v / len(stems) for k, v in relighter.timings.items()},
+           "render_per_sun_per_view": per_sun / len(stems), "suns": n_suns}
+    print(f"{folder.name}: " + " ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in out.items()),
+          flush=True)
+    return out
+
+
 def save_figure(panels: dict, path: Path) -> None:
-    """Per scene and relit sun: input, ours (full pipeline), path-traced truth (view 0)."""
+    """Per scene and relit sun of :data:`FIGURE_TAGS`: input, ours (full pipeline), path-traced truth (view 0)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [(name, tag, p["input"], t) for name, p in panels.items() for tag, t in p["tags"].items()]
+    rows = [(name, tag, p["input"], t) for name, p in panels.items() for tag, t in p["tags"].items()
+            if tag in FIGURE_TAGS or not any(k in FIGURE_TAGS for k in p["tags"])]
     fig, axes = plt.subplots(len(rows), 3, figsize=(9, 2.3 * len(rows)), squeeze=False)
     for row, (name, tag, image, t) in zip(axes, rows, strict=True):
         scale = max(float(np.percentile(np.nan_to_num(t["truth"]), 99)), 1e-6)
@@ -301,7 +338,9 @@ def save_figure(panels: dict, path: Path) -> None:
             ax.set_title(f"{name}: {title}" if title == "input" else title, fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    # JPEG (by the suffix) keeps a figure of many photographs small enough to commit.
+    options = {"pil_kwargs": {"quality": 85}} if path.suffix.lower() in (".jpg", ".jpeg") else {}
+    fig.savefig(path, dpi=90, **options)
     plt.close(fig)
 
 
@@ -310,8 +349,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="the embedded demo only (the default)")
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
     parser.add_argument("--scene", action="append", default=None, help="score DATA/NAME (repeatable)")
+    parser.add_argument("--timing", action="store_true",
+                        help="only time the relighter on the ground-truth layers (scenes without relit renders)")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
-    parser.add_argument("--figure", type=Path, default=None, help="PNG: input, ours, truth per relit sun")
+    parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
     from mvintrinsic.cli import demo_scene_path
 
@@ -323,6 +364,11 @@ def main(argv: list[str] | None = None) -> int:
               "python": platform.python_version(), "config": dataclasses.asdict(RelightConfig()),
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
+    if args.timing:
+        report["timing"] = {name: time_scene(folder) for name, folder in chosen.items()}
+        if args.out:
+            write_json(args.out, report)
+        return 0
     panels = {}
     for name, folder in chosen.items():
         report["scenes"][name], panels[name] = run_scene(folder)

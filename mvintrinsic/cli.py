@@ -227,12 +227,27 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     from .io import _prepare_result_folder, load_decomposition, write_image
     from .preview import tonemap
     from .relight import Relighter, as_sun_direction
+    from .sun_position import azimuth_elevation
 
-    if (args.azimuth is None) == (args.sequence is None):
-        raise ValueError("give either --azimuth A or --sequence START END STEPS (azimuths in degrees)")
+    by_time = args.time is not None
+    if sum((args.azimuth is not None, args.sequence is not None, by_time)) != 1:
+        raise ValueError("give one of --azimuth A, --sequence START END STEPS (azimuths in degrees) "
+                         "or --time DATETIME --lat LAT --lon LON")
+    if by_time and (args.lat is None or args.lon is None):
+        raise ValueError("--time needs --lat and --lon (degrees, north and east positive)")
+    if not by_time and (args.lat is not None or args.lon is not None or args.north is not None):
+        raise ValueError("--lat, --lon and --north go with --time only")
+    if not by_time and args.elevation is None:
+        raise ValueError("--elevation is required with --azimuth and --sequence")
+    if by_time and args.elevation is not None:
+        raise ValueError("--elevation goes with --azimuth or --sequence; --time gives the sun's position itself")
     if args.sequence is not None and (args.sequence[2] < 2 or args.sequence[2] != int(args.sequence[2])):
         raise ValueError(f"--sequence STEPS must be an integer >= 2, got {args.sequence[2]!r}")
     scene = load_scene(args.scene, progress=not args.quiet)
+    if by_time:
+        sun = _sun_at_time(args, scene)
+        as_sun_direction(sun, up=scene.up)  # a sun below the horizon is refused before anything is written
+        args.azimuth, args.elevation = azimuth_elevation(sun, up=scene.up)
     azimuths = [args.azimuth] if args.azimuth is not None else np.linspace(*args.sequence[:2], int(args.sequence[2]))
     for azimuth in (azimuths[0], azimuths[-1]):  # a bad sun is refused before anything is read or written
         as_sun_direction((float(azimuth), args.elevation), up=scene.up)
@@ -251,6 +266,41 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     print(f"wrote {out}: {len(azimuths)} frames per view (azimuth {azimuths[0]:g} to {azimuths[-1]:g}, "
           f"elevation {args.elevation:g}), one animated GIF per view")
     return 0
+
+
+def _sun_at_time(args: argparse.Namespace, scene) -> np.ndarray:
+    """The direction toward the sun at ``--time`` and ``--lat``/``--lon`` (NREL SPA through pvlib).
+
+    North is ``--north`` or, when the scene's ``scene.json`` gives its sun as ``sun_time``, that
+    entry's ``north``; the scene's own frame says nothing about geography otherwise.
+    """
+    import datetime as dt
+
+    from .io import read_scene_json
+    from .sun_position import sun_from_time
+
+    try:
+        when = dt.datetime.fromisoformat(args.time)
+    except ValueError:
+        raise ValueError(f"--time must be an ISO 8601 date and time, e.g. 2024-06-21T15:30+02:00, got {args.time!r}") from None
+    if when.tzinfo is None:
+        raise ValueError(f"--time must carry its UTC offset, e.g. 2024-06-21T15:30+02:00, got {args.time!r}")
+    north = args.north
+    if north is None:
+        settings = read_scene_json(args.scene / "scene.json")
+        if settings["sun_form"] != "sun_time":
+            raise ValueError(f"--north X,Y,Z is needed: {args.scene / 'scene.json'} does not say where north is "
+                             "(it gives no sun_time)")
+        north = settings["sun_time"]["north"]
+    return sun_from_time(when, args.lat, args.lon, north=np.asarray(north, dtype=np.float64), up=scene.up).direction
+
+
+def _parse_vector(text: str) -> tuple[float, float, float]:
+    try:
+        x, y, z = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--north must be X,Y,Z (a world direction), got {text!r}") from None
+    return x, y, z
 
 
 def _write_relit_sequence(relighter, out: Path, azimuths, elevation: float, whites: dict[str, float], *,
@@ -394,9 +444,17 @@ def build_parser() -> argparse.ArgumentParser:
     rel.add_argument("out", type=Path, help="output folder (absent, empty, or a previous output)")
     rel.add_argument("--azimuth", type=float, default=None,
                      help="sun azimuth in degrees, in the scene's horizontal frame (docs/conventions.md)")
-    rel.add_argument("--elevation", type=float, required=True, help="sun elevation in degrees (> 0)")
+    rel.add_argument("--elevation", type=float, default=None,
+                     help="sun elevation in degrees (> 0); with --azimuth or --sequence")
     rel.add_argument("--sequence", type=float, nargs=3, default=None, metavar=("START", "END", "STEPS"),
                      help="a sequence of STEPS suns from azimuth START to END: PNG frames and a GIF per view")
+    rel.add_argument("--time", default=None, metavar="DATETIME",
+                     help="the sun at this ISO 8601 date and time with UTC offset, e.g. 2024-06-21T15:30+02:00 "
+                          "(with --lat, --lon; solar position by NREL SPA, pvlib)")
+    rel.add_argument("--lat", type=float, default=None, help="latitude in degrees, north positive (with --time)")
+    rel.add_argument("--lon", type=float, default=None, help="longitude in degrees, east positive (with --time)")
+    rel.add_argument("--north", type=_parse_vector, default=None, metavar="X,Y,Z",
+                     help="world direction of geographic north (with --time; default: scene.json's sun_time.north)")
     rel.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT")
     rel.add_argument("--quiet", action="store_true", help="no progress bars")
     rel.set_defaults(run=_cmd_relight)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from datetime import datetime
 
 import numpy as np
 
@@ -12,6 +13,7 @@ from mvintrinsic.cli import DEMO_FRAMES, demo_scene_path
 from mvintrinsic.cli import main as cli
 from mvintrinsic.io import read_image
 from mvintrinsic.relight import relight
+from mvintrinsic.sun_position import sun_from_time
 
 DEMO_MAX_BYTES = 10 * 1024 * 1024  # issue 3: the embedded demo is at most 10 MB
 
@@ -63,6 +65,16 @@ def test_demo_command_runs_without_mitsuba(tmp_path):
         image, _ = read_image(tmp_path / "one" / f"{view.stem}.exr")
         np.testing.assert_allclose(image, expected[view.stem], rtol=1e-6, atol=1e-7)
         assert (tmp_path / "one" / f"{view.stem}.png").is_file()
+    # --time/--lat/--lon (with --north: the demo's scene.json gives a sun vector, no geography) is the
+    # same as --azimuth/--elevation at the solar position of that time and place.
+    when, north = "2024-06-21T16:00+02:00", (0.0, 1.0, 0.0)
+    assert cli(["relight", str(demo_scene_path()), str(out / "result"), str(tmp_path / "timed"), "--time", when,
+                "--lat", "48.85", "--lon", "2.35", "--north", ",".join(map(str, north)), "--quiet"]) == 0
+    sun = sun_from_time(datetime.fromisoformat(when), 48.85, 2.35, north=np.array(north), up=scene.up).direction
+    expected = relight(result, scene, sun=sun)
+    for view in scene.views:
+        image, _ = read_image(tmp_path / "timed" / f"{view.stem}.exr")
+        np.testing.assert_allclose(image, expected[view.stem], rtol=1e-5, atol=1e-6)
     first, last = (np.asarray(Image.open(out / "relit" / "frames" / scene.views[0].stem / f"frame_{k:03d}.png"),
                               dtype=float) for k in (0, DEMO_FRAMES - 1))
     assert np.abs(first - last).mean() > 1.0  # the shadows and shading moved between the first and last sun
@@ -78,3 +90,17 @@ def test_relight_command_refuses_bad_input(tmp_path, capsys):
     assert not (tmp_path / "out").exists()
     assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--elevation", "30"]) == 2
     assert "--azimuth" in capsys.readouterr().err
+    # --time needs a place, and north when scene.json does not say where it is.
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--time", "2024-06-21T16:00+02:00"]) == 2
+    assert "--lat" in capsys.readouterr().err
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--time", "2024-06-21T16:00+02:00",
+                "--lat", "48.85", "--lon", "2.35"]) == 2
+    assert "--north" in capsys.readouterr().err
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--time", "2024-06-21T16:00",
+                "--lat", "48.85", "--lon", "2.35", "--north", "0,1,0"]) == 2
+    assert "UTC offset" in capsys.readouterr().err
+    # Midnight in Paris: the sun is below the horizon.
+    assert cli(["relight", demo, str(tmp_path), str(tmp_path / "out"), "--time", "2024-06-21T00:30+02:00",
+                "--lat", "48.85", "--lon", "2.35", "--north", "0,1,0"]) == 2
+    assert "above the horizon" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -73,8 +73,8 @@ from mvintrinsic.raytrace import Tracer, step1
 from mvintrinsic.relight import (
     SKY_ADJUSTMENTS,
     Caster,
-    Relighter,
     RelightConfig,
+    Relighter,
     ShadowCaster,
     receiver_depth,
     receiver_points,

@@ -752,7 +752,8 @@ def label_shadows_multiview(
         new_scores = {}
         for stem in stems:
             e = evidence[stem]
-            v = np.zeros(len(e.group)); gain = np.zeros(len(e.group))
+            v = np.zeros(len(e.group))
+            gain = np.zeros(len(e.group))
             for g, pal in palettes.items():
                 k = e.group == g
                 v[k], gain[k] = _curve_visibility(e.curve[k], pal)

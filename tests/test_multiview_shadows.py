@@ -336,7 +336,7 @@ def test_consensus_takes_the_majority_of_consistent_views():
         for j in stems:
             if i != j:
                 index[i, j] = same.copy()
-                consistent[i, j] = np.array([True, True, True, not ("c" in (i, j))])
+                consistent[i, j] = np.array([True, True, True, "c" not in (i, j)])
     corr = Correspondences(stems=stems, shapes={s: (1, 4) for s in stems}, index=index, consistent=consistent,
                            depth_tolerance=0.03, photo_tolerance=0.25)
     lit = {"a": np.array([[True, True, False, True]]),

@@ -872,9 +872,8 @@ def remove_contradicted(caster: Caster, lit_points: Sequence[np.ndarray], sun_di
         return caster
     triangles = caster.triangles[~bad]
     used, triangles = np.unique(triangles, return_inverse=True)
-    return replace(caster, vertices=caster.vertices[used],
-                               triangles=triangles.reshape(-1, 3).astype(np.int32),
-                               n_removed=caster.n_removed + int(bad.sum()))
+    return replace(caster, vertices=caster.vertices[used], triangles=triangles.reshape(-1, 3).astype(np.int32),
+                   n_removed=caster.n_removed + int(bad.sum()))
 
 
 def contradicted_primitives(tracer: Tracer, lit_points: Sequence[np.ndarray], sun_direction: np.ndarray, *,
@@ -907,17 +906,14 @@ def contradicted_primitives(tracer: Tracer, lit_points: Sequence[np.ndarray], su
     tracer = _check_tracer(tracer)
     config = _check_config(config)
     sun = as_unit_vector(sun_direction, "sun_direction")
-    counts = np.zeros(0, dtype=np.int64)
+    ids = [np.zeros(0, dtype=np.int64)]
     for i, p in enumerate(lit_points):
         p = as_array(p, f"lit_points[{i}]", shape=(None, 3), dtype=np.float64)
         if not len(p):
             continue
         hits = tracer.intersect(p, np.broadcast_to(sun, p.shape), t_min=config.ray_offset, batch=batch)
-        ids = hits.triangle[hits.hit].astype(np.int64)
-        if len(ids):
-            counts = np.pad(counts, (0, max(0, int(ids.max()) + 1 - len(counts))))
-            counts[: int(ids.max()) + 1] += np.bincount(ids)
-    return np.flatnonzero(counts > config.epsilon).astype(np.int64)
+        ids.append(hits.triangle[hits.hit].astype(np.int64))
+    return np.flatnonzero(np.bincount(np.concatenate(ids)) > config.epsilon).astype(np.int64)
 
 
 def _revote(caster: Caster, own: np.ndarray, others: list[np.ndarray], sun: np.ndarray, config: RelightConfig,

@@ -43,6 +43,10 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
 * ``seconds_per_view``: building the relighter (receivers, casters, merged caster and BVH) and
   rendering one sun, per view; ``decompose_seconds``.
 
+``--stride`` only compares ``RelightConfig.ray_stride`` 2 and 3 with 1 (every pixel): the share of
+the sharp shadow state that changes, the relit PSNR change and the time of the new visibility
+(:func:`stride_scene`).
+
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``.
@@ -76,6 +80,7 @@ from mvintrinsic.relight import (
     RelightConfig,
     Relighter,
     ShadowCaster,
+    as_sun_direction,
     receiver_depth,
     receiver_points,
 )
@@ -318,6 +323,58 @@ def time_scene(folder: Path, n_suns: int = 5) -> dict:
     return out
 
 
+def stride_scene(folder: Path, strides: tuple[int, ...] = (2, 3)) -> dict:
+    """What :attr:`~mvintrinsic.relight.RelightConfig.ray_stride` costs against casting every pixel.
+
+    The relighter of the ground-truth layers (defaults), for every relit tag of the scene (or,
+    without relit renders, suns 15 and 30 degrees of azimuth either side of the capture): the
+    share of the non-blurred shadow state that differs from ``ray_stride=1``, the relit PSNR of
+    each stride against the path-traced render, and seconds per view of the new visibility.
+    """
+    scene = load_scene(folder)
+    stems = scene.stems
+    ground_truth = ground_truth_decomposition(folder, views=list(stems))
+    relighter = Relighter(ground_truth, scene, tracer=Tracer(scene.proxy))
+    tags = relit_tags(folder, stems)
+    sky_mask = None
+    if tags:
+        truth = read_ground_truth(folder, views=list(stems))
+        sky_mask = {s: truth[s].sky_mask for s in stems}
+        suns = {tag: (direction, images) for tag, (direction, images, _) in tags.items()}
+    else:
+        azimuth, elevation = azimuth_elevation(scene.sun.direction, up=scene.up)
+        suns = {f"az{d:+d}": (as_sun_direction((azimuth + d, elevation), up=scene.up), None) for d in (-30, -15, 15, 30)}
+    default = relighter.config
+    out = {}
+    for tag, (direction, images) in suns.items():
+        rows = {}
+        for stride in (1, *strides):
+            relighter.config = dataclasses.replace(default, ray_stride=stride, blur=0.0)
+            relighter.visibility_at(direction)  # warm-up of the first sun's caches
+            start = time.perf_counter()
+            sharp = relighter.visibility_at(direction)
+            seconds = (time.perf_counter() - start) / len(stems)
+            relighter.config = dataclasses.replace(default, ray_stride=stride)
+            row = {"visibility_seconds_per_view": seconds, "shadow": {s: sharp[s] < 0.5 for s in stems}}
+            if images is not None:
+                row["psnr"] = mean_psnr(relighter.render(direction), images, sky_mask)["mean"]
+            rows[stride] = row
+        for stride in strides:
+            rows[stride]["changed_share"] = float(np.mean([np.mean(rows[stride]["shadow"][s] != rows[1]["shadow"][s])
+                                                           for s in stems]))
+            if images is not None:
+                rows[stride]["psnr_change"] = rows[stride]["psnr"] - rows[1]["psnr"]
+        for row in rows.values():
+            del row["shadow"]
+        out[tag] = {str(k): v for k, v in rows.items()}
+        print(f"{folder.name} {tag}: " + " ".join(
+            f"stride {k} changed {v['changed_share']:.6f} " + (f"dPSNR {v['psnr_change']:+.4f} " if "psnr_change" in v else "")
+            + f"{v['visibility_seconds_per_view'] * 1e3:.1f} ms (stride 1 {rows[1]['visibility_seconds_per_view'] * 1e3:.1f})"
+            for k, v in rows.items() if k != 1), flush=True)
+    relighter.config = default
+    return out
+
+
 def save_figure(panels: dict, path: Path) -> None:
     """Per scene and relit sun of :data:`FIGURE_TAGS`: input, ours (full pipeline), path-traced truth (view 0)."""
     import matplotlib
@@ -351,6 +408,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=None, help="score DATA/NAME (repeatable)")
     parser.add_argument("--timing", action="store_true",
                         help="only time the relighter on the ground-truth layers (scenes without relit renders)")
+    parser.add_argument("--stride", action="store_true",
+                        help="only compare RelightConfig.ray_stride 2 and 3 with 1 on the ground-truth layers")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
@@ -366,6 +425,11 @@ def main(argv: list[str] | None = None) -> int:
                       "data range = that percentile", "scenes": {}}
     if args.timing:
         report["timing"] = {name: time_scene(folder) for name, folder in chosen.items()}
+        if args.out:
+            write_json(args.out, report)
+        return 0
+    if args.stride:
+        report["ray_stride"] = {name: stride_scene(folder) for name, folder in chosen.items()}
         if args.out:
             write_json(args.out, report)
         return 0

@@ -15,7 +15,8 @@ tags. For every relit tag ``gt/relit/<tag>`` (``docs/formats.md``) the relit vie
     relit with the proxy's own shadow at the new sun, as Step 1 computes it
     (:meth:`~mvintrinsic.relight.Relighter.proxy_visibility`);
 (c) ``gt_mesh``: the ground-truth layers with the exact mesh's shadow (``gt/mesh.ply`` as the
-    caster, receivers on the mesh, its normals for the attached shadow, no blur): the relighting
+    caster, receivers on the mesh, its normals for the attached shadow, no blur, a ray from every
+    pixel): the relighting
     model's bound, all its error is the shading adjustment's; ``gt_mesh_blurred`` is the same with
     the relighter's blur (``RelightConfig.blur``), what the blur costs;
 (d) ``gt_caster``: the ground-truth layers with our caster built from the ground-truth shadow
@@ -154,6 +155,8 @@ class MeshShadow:
             self.normals[view.stem] = np.where(hit[..., None], normals, np.nan)  # geometric, toward the camera
 
     def visibility(self, direction: np.ndarray, config: RelightConfig) -> dict:
+        """Every pixel's own ray (``ray_stride=1``): the bound is not sampled."""
+        config = dataclasses.replace(config, ray_stride=1)
         return {s: self.caster.sun_visibility(self.points[s], self.normals[s], direction, config=config)
                 for s in self.points}
 

@@ -34,6 +34,8 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
   seen by two or more views whose relit visibility ``>= 0.5`` is the same in all of them
   (:func:`mvintrinsic.correspondence.cross_view_agreement`, Step 1's pixel quantities as Step 3
   uses them); ``truth`` is the same measure on ``gt/relit/<tag>/sun_visibility``;
+  ``agreement_interior`` the same without reading the pixels within one pixel of a true relit
+  shadow edge, where even the true labels disagree (``bench_shadows.py --agreement``);
 * ``caster_study``: rows (d) and (e) under other :class:`~mvintrinsic.relight.RelightConfig`
   options, one changed at a time from the default: the merged caster, the paper's checks
   (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
@@ -66,6 +68,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
@@ -85,6 +88,7 @@ from mvintrinsic.relight import (
     receiver_depth,
     receiver_points,
 )
+from mvintrinsic.results import SHADOW_LABELS
 from mvintrinsic.sun_position import azimuth_elevation
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -195,12 +199,21 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
     mesh = MeshShadow(folder, scene)
 
-    def agreement(visibility: dict) -> float | None:
+    def agreement(visibility: dict, true_lit: dict | None = None) -> float | None:
         labels = {s: np.asarray(v) >= 0.5 for s, v in visibility.items()}
+        if true_lit is not None:  # pixels within one pixel of a true shadow edge are not read
+            square = np.ones((3, 3), dtype=bool)
+            labels = {s: np.where(ndimage.binary_dilation(true_lit[s], square)
+                                  & ndimage.binary_dilation(~true_lit[s], square),
+                                  SHADOW_LABELS["undecided"],
+                                  np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])).astype(np.uint8)
+                      for s, lit in labels.items()}
         return cross_view_agreement(scene.views, quantities, labels, points).fraction
 
     entry["psnr"], entry["capture_psnr"], entry["caster"] = {}, {}, {}
     entry["agreement"] = {tag: {"truth": agreement({s: vis[s] for s in stems})} for tag, (_, _, vis) in tags.items()}
+    entry["agreement_interior"] = {tag: {"truth": agreement({s: vis[s] for s in stems}, vis)}
+                                   for tag, (_, _, vis) in tags.items()}
     entry["mesh_visibility_iou"] = {}
     entry["seconds_per_view"] = {}
     figure = {"stem": stems[0], "input": inputs[stems[0]], "tags": {}}
@@ -244,6 +257,7 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
             if sky == default.sky:
                 for name in ("gt_proxy", "gt_mesh", "gt_caster", "pipeline"):
                     entry["agreement"][tag][name] = agreement(relit_vis[name])
+                    entry["agreement_interior"][tag][name] = agreement(relit_vis[name], vis)
                 entry["mesh_visibility_iou"][tag] = {}
                 for label, visibility in (("sharp", mesh_vis), ("blurred", blurred_vis)):
                     ious = []

@@ -155,7 +155,7 @@ Speed (beyond the paper)
 ------------------------
 Building costs one pass per view; every new sun then costs, per view, the shadow rays and a few
 array passes. At 1000x750 (courtyard_1000, 6 views, a 484k-triangle proxy, 2 cores) a new sun
-took 0.30 s per view with one caster ray and one proxy ray per pixel; now 0.09 s:
+took 0.30 s per view with one caster ray and one proxy ray per pixel; now 0.086 s:
 
 * **Rays only where the visibility varies** (:attr:`RelightConfig.ray_stride`): both queries run
   on a grid of every second pixel, then on every pixel of the grid cells whose corners disagree
@@ -1144,11 +1144,10 @@ class ShadowCaster:
         if normals is not None:
             n = _image_array(normals, "normals", shape, np.float64, trailing=(3,), finite=False).reshape(-1, 3)
             with np.errstate(invalid="ignore"):
-                facing = (n @ sun) > 0.0  # NaN > 0 is False...
-            facing |= np.isnan(n).any(axis=1)  # ...but no normal means no attached shadow
-        return self._visibility(points.reshape(-1, 3).astype(np.float32), shape, sun, proxy_tracer=proxy_tracer,
-                                blocked=blocked, min_distance=float(min_distance), facing=facing, config=config,
-                                batch=batch)
+                facing = ~((n @ sun) <= 0.0)  # NaN <= 0 is False: no normal, no attached shadow
+        return self._visibility(points.reshape(-1, 3), shape, sun, proxy_tracer=proxy_tracer, blocked=blocked,
+                                min_distance=float(min_distance) if proxy_tracer is not None else 0.0,
+                                facing=facing, config=config, batch=batch)
 
     def completion_blocked(self, proxy_tracer: Tracer, excluded: np.ndarray | None = None) -> np.ndarray:
         """Per proxy primitive, whether a first hit on it completes no shadow; (P + 1,) bool.
@@ -1157,22 +1156,23 @@ class ShadowCaster:
         ``excluded`` ones, and in the last entry, which a miss (primitive -1) reads. A lookup
         built once per view and sun-independent, so each new sun costs one gather.
         """
-        blocked = np.zeros(proxy_tracer.n_primitives + 1, dtype=bool)
-        blocked[self.caster.proxy_primitives] = True
-        if excluded is not None and len(excluded):
-            blocked[excluded] = True
+        n = proxy_tracer.n_primitives
+        blocked = np.zeros(n + 1, dtype=bool)
+        for ids in (self.caster.proxy_primitives, () if excluded is None else excluded):
+            ids = np.asarray(ids, dtype=np.int64)
+            blocked[ids[(ids >= 0) & (ids < n)]] = True  # other ids name no primitive: no hit reads them
         blocked[-1] = True
         return blocked
 
     def _visibility(self, points: np.ndarray, shape: tuple[int, int], sun: np.ndarray, *,
                     proxy_tracer: Tracer | None, blocked: np.ndarray | None, min_distance: float,
                     facing: np.ndarray | None, config: RelightConfig, batch: int) -> np.ndarray:
-        """:meth:`sun_visibility` on checked inputs: ``points`` (H*W, 3) float32, ``sun`` unit."""
-        offset = np.float32(config.ray_offset) * sun.astype(np.float32)
+        """:meth:`sun_visibility` on checked inputs: ``points`` (H*W, 3) float64, ``sun`` unit."""
+        offset = config.ray_offset * sun
 
         def shaded(index: np.ndarray) -> np.ndarray:
-            # float32 origins, as Embree takes them, offset toward the sun.
-            origins = points[index] + offset
+            # Offset toward the sun in float64, then float32 as Embree takes them.
+            origins = (points[index] + offset).astype(np.float32)
             shade = self.occluded(origins, sun, batch=batch)
             if proxy_tracer is not None:
                 # Only rays the caster let through can change: the proxy's rays go to those alone.
@@ -1587,7 +1587,7 @@ class Relighter:
         Seconds spent building: ``receivers`` (camera rays, depths, normals), ``casters`` (all
         views' :func:`build_caster`), ``votes`` (every view's lit pixels against every caster and
         the proxy), ``shadow_caster`` (merging and the BVHs), ``new_sun_setup`` (what every new
-        sun reuses: float32 receivers, the completion lookups, the shading terms).
+        sun reuses: the completion lookups and the shading terms).
 
     Raises
     ------
@@ -1681,7 +1681,7 @@ class Relighter:
         self._hits, self._known, self._cosine = hits, known, cosine
         # The sun-independent inputs of every new sun, once (module docstring, "Speed").
         start = time.perf_counter()
-        self._origins = {s: receivers[s].reshape(-1, 3).astype(np.float32) for s in self.stems}
+        self._origins = {s: receivers[s].reshape(-1, 3) for s in self.stems}  # a view, no copy
         self._blocked = {s: self.shadow_casters[s].completion_blocked(
             tracer, excluded if config.method == "multiview" else None) for s in self.stems}
         self._prepare_shading()

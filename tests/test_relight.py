@@ -349,6 +349,20 @@ def test_first_primitive_is_intersects_distance_and_triangle(scene):
     assert scene.tracer.n_primitives == len(scene.tracer.proxy.triangles)
 
 
+def test_completion_lookup_ignores_ids_that_name_no_primitive(scene, capture):
+    # As the membership test it replaced: an excluded id outside [0, P) blocks nothing.
+    direction, _, caster = capture
+    shadow_caster = ShadowCaster(caster)
+    n = scene.tracer.n_primitives
+    blocked = shadow_caster.completion_blocked(scene.tracer, np.array([-2, n, n + 5]))
+    np.testing.assert_array_equal(blocked, shadow_caster.completion_blocked(scene.tracer))
+    assert blocked[-1] and blocked[caster.proxy_primitives].all() and blocked.sum() == len(caster.proxy_primitives) + 1
+    moved = sun(SUN_AZIMUTH + 15.0, SUN_ELEVATION)
+    np.testing.assert_array_equal(
+        shadow_caster.sun_visibility(scene.points, None, moved, proxy_tracer=scene.tracer, excluded=[n + 1]),
+        shadow_caster.sun_visibility(scene.points, None, moved, proxy_tracer=scene.tracer))
+
+
 def test_ray_stride_gives_the_shadow_of_every_pixel(scene, capture):
     # The box's shadow at the capture sun and moved: strides 2 and 4 equal stride 1 here.
     _, shadow, caster = capture

@@ -68,7 +68,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from scipy import ndimage
+from bench_shadows import away_from_edges
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
@@ -202,12 +202,8 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     def agreement(visibility: dict, true_lit: dict | None = None) -> float | None:
         labels = {s: np.asarray(v) >= 0.5 for s, v in visibility.items()}
         if true_lit is not None:  # pixels within one pixel of a true shadow edge are not read
-            square = np.ones((3, 3), dtype=bool)
-            labels = {s: np.where(ndimage.binary_dilation(true_lit[s], square)
-                                  & ndimage.binary_dilation(~true_lit[s], square),
-                                  SHADOW_LABELS["undecided"],
-                                  np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])).astype(np.uint8)
-                      for s, lit in labels.items()}
+            labels = away_from_edges({s: np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])
+                                      for s, lit in labels.items()}, true_lit)
         return cross_view_agreement(scene.views, quantities, labels, points).fraction
 
     entry["psnr"], entry["capture_psnr"], entry["caster"] = {}, {}, {}

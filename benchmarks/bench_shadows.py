@@ -219,12 +219,16 @@ def save_figure(panels: dict[str, dict], path: Path) -> None:
     plt.close(fig)
 
 
-def away_from_edges(labels: dict, truth: dict) -> dict:
-    """``labels`` with every pixel within one pixel of a true shadow edge made undecided (128, not read)."""
+def away_from_edges(labels: dict, true_lit: dict) -> dict:
+    """``labels`` (codes per view) with every pixel within one pixel of a true shadow edge made undecided.
+
+    ``true_lit`` holds each view's true sun visibility as (H, W) bool; undecided pixels (128) are
+    not read by :func:`~mvintrinsic.correspondence.cross_view_agreement`.
+    """
     out = {}
+    square = np.ones((3, 3), dtype=bool)
     for stem, codes in labels.items():
-        lit = np.asarray(truth[stem].sun_visibility, dtype=bool)
-        square = np.ones((3, 3), dtype=bool)
+        lit = np.asarray(true_lit[stem], dtype=bool)
         edge = ndimage.binary_dilation(lit, square) & ndimage.binary_dilation(~lit, square)
         out[stem] = np.where(edge, SHADOW_LABELS["undecided"], codes).astype(np.uint8)
     return out
@@ -251,7 +255,7 @@ def agreement_scene(folder: Path) -> dict:
     out = {}
     for name, labels in labellings.items():
         everywhere = cross_view_agreement(scene.views, quantities, labels, points)
-        interior = cross_view_agreement(scene.views, quantities, away_from_edges(labels, truth), points)
+        interior = cross_view_agreement(scene.views, quantities, away_from_edges(labels, {s: gt.sun_visibility for s, gt in truth.items()}), points)
         out[name] = {"all": everywhere.fraction, "all_points": everywhere.points,
                      "interior": interior.fraction, "interior_points": interior.points}
     print(f"{folder.name:15s} agreement all / away from true edges: " + "  ".join(

@@ -328,7 +328,14 @@ class Tracer:
         primitive : (N,) int64
             As :attr:`RayHits.triangle` (a point's index for a point cloud); -1 on a miss.
         """
-        origins = np.asarray(origins, dtype=np.float32)
+        origins = np.asarray(origins)
+        if origins.dtype != np.float32:
+            # Forward in float64, then float32 as Embree takes them (as :meth:`intersect` does).
+            direction64 = np.asarray(direction, dtype=np.float64).reshape(3)
+            origins = (origins.astype(np.float64) + t_min * direction64).astype(np.float32)
+            shift = np.float32(0.0)
+        else:
+            shift = np.float32(t_min)
         direction = np.asarray(direction, dtype=np.float32).reshape(3)
         n = len(origins)
         t = np.full(n, np.inf, dtype=np.float32)
@@ -337,7 +344,7 @@ class Tracer:
         for start in range(0, n, batch):
             m = min(batch, n - start)
             chunk = rays[:m]
-            np.add(origins[start:start + m], np.float32(t_min) * direction, out=chunk[:, :3])
+            np.add(origins[start:start + m], shift * direction, out=chunk[:, :3])
             chunk[:, 3:] = direction
             answer = self._scene.cast_rays(self._o3c.Tensor(chunk))
             t_hit = answer["t_hit"].numpy()

@@ -949,8 +949,8 @@ def contradicted_primitives(tracer: Tracer, lit_points: Sequence[np.ndarray], su
         p = as_array(p, f"lit_points[{i}]", shape=(None, 3), dtype=np.float64)
         if not len(p):
             continue
-        hits = tracer.intersect(p, np.broadcast_to(sun, p.shape), t_min=config.ray_offset, batch=batch)
-        ids.append(hits.triangle[hits.hit].astype(np.int64))
+        _, primitive = tracer.first_primitive(p, sun, t_min=config.ray_offset, batch=batch)
+        ids.append(primitive[primitive >= 0])
     return np.flatnonzero(np.bincount(np.concatenate(ids)) > config.epsilon).astype(np.int64)
 
 
@@ -1059,10 +1059,11 @@ class ShadowCaster:
         sun_direction : (3,) array_like
             Unit direction toward the sun, world frame.
         """
-        origins = np.asarray(origins)
-        origins = as_array(origins, "origins", shape=(None, 3),
-                           dtype=np.float32 if origins.dtype == np.float32 else np.float64)
-        sun = as_unit_vector(sun_direction, "sun_direction")
+        origins = as_array(origins, "origins", shape=(None, 3), dtype=np.float64)
+        return self._occluded(origins, as_unit_vector(sun_direction, "sun_direction"), batch=batch)
+
+    def _occluded(self, origins: np.ndarray, sun: np.ndarray, *, batch: int) -> np.ndarray:
+        """:meth:`occluded` on checked inputs (the per-sun hot path: no copy, no finiteness scan)."""
         out = np.zeros(len(origins), dtype=bool)
         if self._scene is None:
             return out
@@ -1173,7 +1174,7 @@ class ShadowCaster:
         def shaded(index: np.ndarray) -> np.ndarray:
             # Offset toward the sun in float64, then float32 as Embree takes them.
             origins = (points[index] + offset).astype(np.float32)
-            shade = self.occluded(origins, sun, batch=batch)
+            shade = self._occluded(origins, sun, batch=batch)
             if proxy_tracer is not None:
                 # Only rays the caster let through can change: the proxy's rays go to those alone.
                 # A proxy hit completes the shadow unless the caster stands for its primitive, a

@@ -1,6 +1,6 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
-    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing]
+    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -21,7 +21,8 @@ tags. For every relit tag ``gt/relit/<tag>`` (``docs/formats.md``) the relit vie
     the relighter's blur (``RelightConfig.blur``), what the blur costs;
 (d) ``gt_caster``: the ground-truth layers with our caster built from the ground-truth shadow
     labels (:class:`~mvintrinsic.relight.Relighter` with its defaults: the paper's parameters,
-    one caster merged over all views, proxy completion, the dropped clusters brought into light);
+    every view's votes, each view's own caster, proxy completion, the dropped clusters brought
+    into light);
 (e) ``pipeline``: the full pipeline, ``mvintrinsic.decompose(scene)`` then the Relighter.
 
 Rows (b) and (c) keep the true reflectance (``light_dropped=False``: the fix belongs to the
@@ -50,6 +51,10 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
 the sharp shadow state that changes, the relit PSNR change and the time of the new visibility
 (:func:`stride_scene`).
 
+``--softness`` only compares ways of softening row (d)'s new shadow (:func:`softness_scene`):
+the paper's 1 px Gaussian blur (the default), none, a penumbra from the sun's angular size and
+the occluder distance, and a blend with the capture visibility (shadows that persist).
+
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``.
@@ -69,6 +74,7 @@ from pathlib import Path
 
 import numpy as np
 from bench_shadows import away_from_edges
+from scipy import ndimage
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
@@ -388,6 +394,90 @@ def stride_scene(folder: Path, strides: tuple[int, ...] = (2, 3)) -> dict:
     return out
 
 
+#: The share of the new shadow state kept from the caster in the ``persistence`` row of
+#: :func:`softness_scene` (the rest is the capture visibility).
+PERSISTENCE_WEIGHT = 0.7
+
+
+def _variable_blur(image: np.ndarray, sigma: np.ndarray) -> np.ndarray:
+    """``image`` (H, W) blurred by a Gaussian whose standard deviation ``sigma`` (H, W, pixels) varies.
+
+    Linear interpolation between a stack of uniform blurs (0 to 12 px; wider is clipped).
+    """
+    levels = np.array([0.0, 0.5, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0])
+    stack = np.stack([image if s == 0 else ndimage.gaussian_filter(image, s, mode="nearest") for s in levels])
+    sigma = np.clip(sigma, levels[0], levels[-1])
+    upper = np.clip(np.searchsorted(levels, sigma), 1, len(levels) - 1)
+    weight = (sigma - levels[upper - 1]) / (levels[upper] - levels[upper - 1])
+    rows, cols = np.indices(image.shape)
+    return ((1 - weight) * stack[upper - 1, rows, cols] + weight * stack[upper, rows, cols]).astype(np.float32)
+
+
+def softness_scene(folder: Path) -> dict:
+    """How soft row (d)'s new shadow should be: relit PSNR of the ground-truth layers with our caster.
+
+    Per relit tag, the sharp new visibility (``ray_stride=1``, no blur) softened by:
+
+    * ``paper``: a Gaussian of ``RelightConfig.blur`` = 1 px (the default);
+    * ``sharp``: nothing;
+    * ``penumbra``: a Gaussian whose width is the penumbra of the sun's disc,
+      ``t tan(angular_radius) / footprint`` pixels, ``t`` the distance along the new sun ray to
+      the occluder (caster or proxy completion; lit pixels take the nearest shadow pixel's),
+      ``footprint`` the pixel's size on the receiver (metres per pixel);
+    * ``penumbra_and_paper``: both widths in quadrature;
+    * ``persistence``: :data:`PERSISTENCE_WEIGHT` of the paper's row plus the rest of the capture
+      visibility (blurred alike): at a small sun move most shadows stay, and where the caster's
+      predicted change is uncertain the blend is the least-squares answer.
+    """
+    scene = load_scene(folder)
+    stems = scene.stems
+    tags = relit_tags(folder, stems)
+    if not tags:
+        raise ValueError(f"{folder}: --softness needs relit renders (gt/relit/<tag>)")
+    truth = read_ground_truth(folder, views=list(stems))
+    sky_mask = {s: truth[s].sky_mask for s in stems}
+    ground_truth = ground_truth_decomposition(folder, views=list(stems))
+    tracer = Tracer(scene.proxy)
+    config = RelightConfig(ray_stride=1, blur=0.0)
+    relighter = Relighter(ground_truth, scene, config=config, tracer=tracer)
+    blur = RelightConfig().blur
+    cameras = {view.stem: view.camera for view in scene.views}
+    blocked = {s: relighter.shadow_casters[s].completion_blocked(tracer, relighter.excluded_primitives)
+               for s in stems}
+    capture = {s: ndimage.gaussian_filter(np.asarray(relighter.visibility[s], np.float32), blur, mode="nearest")
+               for s in stems}
+    out = {}
+    for tag, (direction, images, _) in tags.items():
+        sharp = relighter.visibility_at(direction)
+        rows = {name: {} for name in ("paper", "sharp", "penumbra", "penumbra_and_paper", "persistence")}
+        for s in stems:
+            shape = sharp[s].shape
+            origins = relighter.receivers[s].reshape(-1, 3) + config.ray_offset * direction
+            t = relighter.shadow_casters[s].hit_distance(origins, direction).astype(np.float64)
+            t_proxy, primitive = tracer.first_primitive(origins, direction)
+            completes = ~blocked[s][primitive] & (t_proxy + config.ray_offset >= config.completion_distance)
+            t = np.where(completes, np.minimum(t, t_proxy), t).reshape(shape)
+            t = np.where(sharp[s] < 0.5, t, np.inf)
+            known = np.isfinite(t)
+            if known.any():
+                nearest = ndimage.distance_transform_edt(~known, return_distances=False, return_indices=True)
+                t = t[nearest[0], nearest[1]]
+            else:
+                t = np.zeros(shape)
+            footprint = np.linalg.norm(relighter.receivers[s] - cameras[s].center, axis=-1) / min(cameras[s].focal)
+            width = t * np.tan(scene.sun.angular_radius) / footprint
+            paper = ndimage.gaussian_filter(sharp[s], blur, mode="nearest")
+            rows["paper"][s] = paper
+            rows["sharp"][s] = sharp[s]
+            rows["penumbra"][s] = _variable_blur(sharp[s], width)
+            rows["penumbra_and_paper"][s] = _variable_blur(sharp[s], np.hypot(width, blur))
+            rows["persistence"][s] = PERSISTENCE_WEIGHT * paper + (1 - PERSISTENCE_WEIGHT) * capture[s]
+        out[tag] = {name: mean_psnr(relighter.render(direction, visibility=v), images, sky_mask)["mean"]
+                    for name, v in rows.items()}
+        print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in out[tag].items()), flush=True)
+    return out
+
+
 def save_figure(panels: dict, path: Path) -> None:
     """Per scene and relit sun of :data:`FIGURE_TAGS`: input, ours (full pipeline), path-traced truth (view 0)."""
     import matplotlib
@@ -423,6 +513,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only time the relighter on the ground-truth layers (scenes without relit renders)")
     parser.add_argument("--stride", action="store_true",
                         help="only compare RelightConfig.ray_stride 2 and 3 with 1 on the ground-truth layers")
+    parser.add_argument("--softness", action="store_true",
+                        help="only compare ways of softening the new shadow on the ground-truth layers")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
@@ -443,6 +535,11 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.stride:
         report["ray_stride"] = {name: stride_scene(folder) for name, folder in chosen.items()}
+        if args.out:
+            write_json(args.out, report)
+        return 0
+    if args.softness:
+        report["softness"] = {name: softness_scene(folder) for name, folder in chosen.items()}
         if args.out:
             write_json(args.out, report)
         return 0

@@ -840,3 +840,20 @@ def test_relighter_methods_and_caster_modes(box_relit):
         RelightConfig(method="exact")
     with pytest.raises(ValueError, match="casters"):
         RelightConfig(casters="all")
+
+
+def test_hit_distance_is_the_occluder_distance_where_the_caster_blocks(scene, capture):
+    # The caster lifted from the box's shadow sits on the box: its hit distance along the capture
+    # sun is the proxy's (the box's) and finite exactly where the caster blocks the ray.
+    direction, _, caster = capture
+    shadow_caster = ShadowCaster(caster)
+    origins = scene.points.reshape(-1, 3) + RelightConfig().ray_offset * direction
+    t = shadow_caster.hit_distance(origins, direction)
+    blocked = shadow_caster.occluded(origins, direction)
+    assert t.shape == (len(origins),) and t.dtype == np.float32 and blocked.sum() > 500
+    np.testing.assert_array_equal(np.isfinite(t), blocked)
+    proxy_t, _ = scene.tracer.first_primitive(origins[blocked], direction)
+    error = np.abs(t[blocked] - proxy_t)
+    assert np.median(error) < 0.01
+    with pytest.raises(ValueError, match="origins"):
+        shadow_caster.hit_distance(np.zeros((2, 2)), direction)

@@ -331,7 +331,7 @@ class RelightConfig:
         The paper applies "a small Gaussian blur" without a value; 1 pixel softens the edge to
         about the width of a photographed penumbra at these resolutions and closes one-pixel
         cracks. A per-pixel penumbra from the sun's angular size and the occluder distance
-        instead scored 0.1-1.0 dB lower, and added in quadrature to the 1 px within 0.01 dB of
+        instead scored 0.08-1.07 dB lower, and added in quadrature to the 1 px within 0.01 dB of
         it (``benchmarks/bench_relight.py --softness``, four 480x360 scenes, 20 suns).
     ray_offset : float
         Metres a sun ray starts from its receiver point along the sun direction, against

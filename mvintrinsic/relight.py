@@ -1080,22 +1080,20 @@ class ShadowCaster:
         """
         origins = as_array(origins, "origins", shape=(None, 3), dtype=np.float64)
         sun = as_unit_vector(sun_direction, "sun_direction")
-        out = np.full(len(origins), np.inf, dtype=np.float32)
-        if self._scene is None:
-            return out
-        for start in range(0, len(origins), batch):
-            sl = slice(start, start + batch)
-            out[sl] = self._scene.cast_rays(_rays(origins[sl], sun))["t_hit"].numpy()
-        return out
+        return self._query(origins, sun, np.inf, np.float32, lambda rays: self._scene.cast_rays(rays)["t_hit"], batch)
 
     def _occluded(self, origins: np.ndarray, sun: np.ndarray, *, batch: int) -> np.ndarray:
         """:meth:`occluded` on checked inputs (the per-sun hot path: no copy, no finiteness scan)."""
-        out = np.zeros(len(origins), dtype=bool)
+        return self._query(origins, sun, False, bool, lambda rays: self._scene.test_occlusions(rays), batch)
+
+    def _query(self, origins: np.ndarray, sun: np.ndarray, empty, dtype, query, batch: int) -> np.ndarray:
+        """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` without a caster."""
+        out = np.full(len(origins), empty, dtype=dtype)
         if self._scene is None:
             return out
         for start in range(0, len(origins), batch):
             sl = slice(start, start + batch)
-            out[sl] = self._scene.test_occlusions(_rays(origins[sl], sun)).numpy().astype(bool)
+            out[sl] = query(_rays(origins[sl], sun)).numpy()
         return out
 
     def sun_visibility(

@@ -1,6 +1,6 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
-    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness]
+    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -55,6 +55,11 @@ the sharp shadow state that changes, the relit PSNR change and the time of the n
 the paper's 1 px Gaussian blur (the default), none, a penumbra from the sun's angular size and
 the occluder distance, and a blend with the capture visibility (shadows that persist).
 
+``--bounds`` only relights the ground-truth and the pipeline's layers with ideal shadow layers
+(:func:`bounds_scene`): the exact mesh's, the path tracer's and the best possible one
+(:func:`best_visibility`, the per-pixel least-squares visibility against the truth): how much of
+row (e)'s distance to row (c) a better caster could close, and how much is the layers'.
+
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``.
@@ -107,6 +112,9 @@ AGREEMENT_POINTS = 300_000
 #: The relit suns shown in the figure (all of a scene's when it has none of them).
 FIGURE_TAGS = ("az+15", "az-15")
 ROWS = ("input", "gt_proxy", "gt_mesh", "gt_mesh_blurred", "gt_caster", "pipeline")
+#: The rows of ``--bounds`` (:func:`bounds_scene`).
+BOUND_ROWS = ("input", "gt_mesh", "gt_caster", "pipeline", "gt_truth", "gt_best", "pipeline_mesh", "pipeline_truth",
+              "pipeline_best")
 
 
 def relit_psnr(estimate: np.ndarray, truth: np.ndarray, sky_mask: np.ndarray) -> float:
@@ -478,6 +486,89 @@ def softness_scene(folder: Path) -> dict:
     return out
 
 
+def best_visibility(relighter: Relighter, direction: np.ndarray, truth: dict, sky_mask: dict) -> dict:
+    """Per view, the visibility in [0, 1] that brings the relit image nearest the path-traced one.
+
+    The relit image is linear in the visibility, ``I'(v) = A + v (B - A)`` with ``A`` the render
+    at ``v = 0`` and ``B`` at ``v = 1`` (:meth:`~mvintrinsic.relight.Relighter.render`), so per
+    pixel the least-squares ``v`` against the truth (clipped as :func:`relit_psnr` clips it) over
+    the three channels is ``<T - A, B - A> / |B - A|^2``, clipped to [0, 1]: no shadow layer,
+    however it is computed, relights these layers closer to the truth (up to the metric's clip of
+    the estimate).
+    """
+    zero = relighter.render(direction, visibility={s: np.zeros(sky_mask[s].shape, np.float32) for s in truth})
+    one = relighter.render(direction, visibility={s: np.ones(sky_mask[s].shape, np.float32) for s in truth})
+    out = {}
+    for s, image in truth.items():
+        image = np.asarray(image, dtype=np.float64)
+        mask = ~sky_mask[s] & np.isfinite(image).all(axis=-1)
+        target = np.clip(np.nan_to_num(image), 0.0, float(np.percentile(image[mask], CLIP_PERCENTILE)))
+        base = zero[s].astype(np.float64)
+        step = one[s].astype(np.float64) - base
+        v = ((target - base) * step).sum(axis=-1) / np.maximum((step * step).sum(axis=-1), 1e-30)
+        out[s] = np.clip(np.nan_to_num(v), 0.0, 1.0).astype(np.float32)
+    return out
+
+
+def bounds_scene(folder: Path) -> dict:
+    """What the shadow layer can still give: the layers relit with ideal shadows (:data:`BOUND_ROWS`).
+
+    The environment adjustment is the default (``RelightConfig.sky``); rows (a), (c), (d) and (e)
+    as in :func:`run_scene`, then, for the ground-truth and the pipeline's layers (both with
+    ``light_dropped=False``, as row (c)):
+
+    * ``*_mesh``: the exact mesh's shadow (row (c)'s visibility);
+    * ``*_truth``: the path tracer's visibility at the new sun (``gt/relit/<tag>/sun_visibility``);
+    * ``*_best``: :func:`best_visibility`, the bound of every shadow layer for these layers.
+    """
+    scene = load_scene(folder)
+    stems = scene.stems
+    tags = relit_tags(folder, stems)
+    if not tags:
+        raise ValueError(f"{folder}: --bounds needs relit renders (gt/relit/<tag>)")
+    truth = read_ground_truth(folder, views=list(stems))
+    sky_mask = {s: truth[s].sky_mask for s in stems}
+    inputs = {v.stem: v.image for v in scene.views}
+    tracer = Tracer(scene.proxy)
+    print(f"{folder.name}: decomposing {len(stems)} views", flush=True)
+    layers = {"gt": ground_truth_decomposition(folder, views=list(stems)), "pipeline": decompose(scene, tracer=tracer)}
+    config = RelightConfig()
+    ours = {name: Relighter(d, scene, config=config, tracer=tracer) for name, d in layers.items()}
+    plain = {name: Relighter(d, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+             for name, d in layers.items()}
+    mesh = MeshShadow(folder, scene)
+    out = {}
+    for tag, (direction, images, vis) in tags.items():
+        exact = mesh.visibility(direction, dataclasses.replace(config, blur=0.0))
+        true_vis = {s: np.asarray(vis[s], np.float32) for s in stems}
+        rows = {"input": inputs, "gt_mesh": plain["gt"].render(direction, visibility=exact),
+                "gt_caster": ours["gt"].render(direction), "pipeline": ours["pipeline"].render(direction)}
+        for name, relighter in plain.items():
+            rows[f"{name}_mesh"] = relighter.render(direction, visibility=exact)
+            rows[f"{name}_truth"] = relighter.render(direction, visibility=true_vis)
+            rows[f"{name}_best"] = relighter.render(
+                direction, visibility=best_visibility(relighter, direction, images, sky_mask))
+        out[tag] = {name: mean_psnr(rows[name], images, sky_mask)["mean"] for name in BOUND_ROWS}
+        print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in out[tag].items()), flush=True)
+    return out
+
+
+def bounds_summary(bounds: dict) -> dict:
+    """Mean gain over row (a) at +-15 degrees of azimuth, and the scene-suns each row beats (a) on."""
+    gains = {row: [] for row in BOUND_ROWS[1:]}
+    above = {row: 0 for row in BOUND_ROWS[1:]}
+    count = 0
+    for tags in bounds.values():
+        for tag, rows in tags.items():
+            count += 1
+            for row in gains:
+                above[row] += rows[row] > rows["input"]
+                if tag in ("az+15", "az-15"):
+                    gains[row].append(rows[row] - rows["input"])
+    return {"mean_gain_over_input_at_15_deg": {row: float(np.mean(g)) if g else None for row, g in gains.items()},
+            "scene_suns_above_input": {row: f"{n}/{count}" for row, n in above.items()}}
+
+
 def save_figure(panels: dict, path: Path) -> None:
     """Per scene and relit sun of :data:`FIGURE_TAGS`: input, ours (full pipeline), path-traced truth (view 0)."""
     import matplotlib
@@ -515,6 +606,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only compare RelightConfig.ray_stride 2 and 3 with 1 on the ground-truth layers")
     parser.add_argument("--softness", action="store_true",
                         help="only compare ways of softening the new shadow on the ground-truth layers")
+    parser.add_argument("--bounds", action="store_true",
+                        help="only the layers (true and pipeline) relit with ideal shadows: exact, true, best")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
@@ -540,6 +633,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.softness:
         report["softness"] = {name: softness_scene(folder) for name, folder in chosen.items()}
+        if args.out:
+            write_json(args.out, report)
+        return 0
+    if args.bounds:
+        report["bounds"] = {name: bounds_scene(folder) for name, folder in chosen.items()}
+        report["bounds_summary"] = bounds_summary(report["bounds"])
         if args.out:
             write_json(args.out, report)
         return 0

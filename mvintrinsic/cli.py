@@ -364,7 +364,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
                          gloss=args.gloss, hfov_deg=args.hfov, relit=relit)
     if args.sun is not None:
         config = with_overrides(config, sun_azimuth_deg=args.sun[0], sun_elevation_deg=args.sun[1])
-    changes = {"render_spp": args.spp, "render_sun": not args.overcast, "render_turbidity": args.turbidity}
+    changes = {"render_spp": args.spp, "render_sun": not args.overcast, "render_turbidity": args.turbidity,
+               "render_sky": args.sky, "render_aerosol_scale": args.aerosol}
     proxy_fields = {f.name: f.type for f in fields(config.proxy)}
     for item in args.degrade:
         key, _, value = item.partition("=")
@@ -431,7 +432,12 @@ def build_parser() -> argparse.ArgumentParser:
                             "(default az+15,az-15,az+30,az-30,el+10: synth.dataset.DEFAULT_RELIT)")
     synth.add_argument("--degrade", action="append", default=[], metavar="KNOB=VALUE",
                        help="proxy degradation, e.g. depth_noise=0.02 (repeatable)")
-    synth.add_argument("--turbidity", type=float, default=3.0, help="sky turbidity (default 3)")
+    synth.add_argument("--turbidity", type=float, default=3.0, help="sky turbidity (default 3; --sky hosek-wilkie)")
+    synth.add_argument("--sky", choices=("hosek-wilkie", "simulated"), default="hosek-wilkie",
+                       help="Mitsuba's analytic sunsky (default) or a numerical clear-sky simulation "
+                            "(Rayleigh and Mie, single and multiple scattering: synth.atmosphere)")
+    synth.add_argument("--aerosol", type=float, default=20.0,
+                       help="--sky simulated: aerosol density multiplier (default 20: optical depth ~0.11)")
     synth.add_argument("--overcast", action="store_true", help="sun off (sky only)")
     synth.add_argument("--gloss", action="store_true", help="mildly glossy materials (stress test)")
     synth.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")

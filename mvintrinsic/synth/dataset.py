@@ -306,8 +306,7 @@ def synthesize(recipe: str, out: str | Path, *, config: SynthConfig | None = Non
         "up": [0.0, 0.0, 1.0],
         "azimuth_convention": "counter-clockwise from +x, Z up",
         "units": "m",
-        "sky": {"model": "hosek-wilkie", "turbidity": config.render.turbidity,
-                "renderer": "mitsuba scalar_rgb sunsky", "sun": config.render.sun},
+        "sky": _sky_info(config.render),
         "config": _jsonable(asdict(config)),
         "markers": {k: np.asarray(v).tolist() for k, v in scene.markers.items()},
         "proxy": quality,
@@ -316,6 +315,20 @@ def synthesize(recipe: str, out: str | Path, *, config: SynthConfig | None = Non
     }
     write_json(out / "gt" / "scene_info.json", info)
     return info
+
+
+def _sky_info(render: RenderConfig) -> dict:
+    """What lit the scene, for ``gt/scene_info.json``."""
+    if render.sky == "simulated":
+        from .render import SIMULATED_SKY_SCALE, SIMULATED_SKY_WIDTH
+
+        return {"model": "simulated clear sky: Rayleigh and Mie, single and multiple scattering "
+                         "(mvintrinsic.synth.atmosphere)",
+                "aerosol_scale": render.aerosol_scale, "ground_albedo": render.ground_albedo,
+                "exposure": SIMULATED_SKY_SCALE, "envmap_width": SIMULATED_SKY_WIDTH,
+                "renderer": "mitsuba scalar_rgb envmap + directional sun", "sun": render.sun}
+    return {"model": "hosek-wilkie", "turbidity": render.turbidity, "renderer": "mitsuba scalar_rgb sunsky",
+            "sun": render.sun}
 
 
 def _save_npz(path: Path, **arrays) -> None:

@@ -746,18 +746,13 @@ class ClearSky:
         rows, cols : (...) int64
             ``v = floor(θ H / π)`` clipped to ``[0, H)``, ``u = floor(φ W / 2π) mod W``.
         """
+        from ..skymodel import direction_to_texel
+
         d = np.asarray(directions, dtype=np.float64)
-        if d.shape[-1:] != (3,) or not np.isfinite(d).all():
-            raise ValueError(f"directions must be finite with shape (..., 3), got shape {d.shape}")
-        norm = np.linalg.norm(d, axis=-1)
-        if (norm < 1e-12).any():
-            raise ValueError("directions must be non-zero vectors")
-        d = d / norm[..., None]
-        theta = np.arccos(np.clip(d[..., 2], -1.0, 1.0))
-        phi = np.mod(np.arctan2(d[..., 1], d[..., 0]), 2.0 * math.pi)
-        rows = np.clip(np.floor(theta * self.height / math.pi).astype(np.int64), 0, self.height - 1)
-        cols = np.mod(np.floor(phi * self.width / (2.0 * math.pi)).astype(np.int64), self.width)
-        return rows, cols
+        if d.shape[-1:] != (3,):
+            raise ValueError(f"directions must have shape (..., 3), got shape {d.shape}")
+        rows, cols = direction_to_texel(d.reshape(-1, 3), self.height)
+        return rows.reshape(d.shape[:-1]), cols.reshape(d.shape[:-1])
 
 
 def clear_sky(sun_direction: object, *, width: int = 512, config: AtmosphereConfig | None = None,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import math
 from dataclasses import replace
 
-import colour
 import numpy as np
 import pytest
 
+from mvintrinsic.io import import_colour
 from mvintrinsic.skymodel import direction_to_texel, envmap_directions
 from mvintrinsic.synth.atmosphere import MITSUBA_ENVMAP_TO_WORLD, AtmosphereConfig, clear_sky, envmap_emitter
 from mvintrinsic.synth.render import sun_vector
@@ -57,6 +57,7 @@ def planck_solar_irradiance(wavelengths_nm, temperature=5778.0, total=1361.0):
 
 def spectrum_to_rgb(wavelengths_nm, spectrum):
     """Linear sRGB of a spectrum taken linear between samples: CIE 1931 2° CMFs at 1 nm, IEC matrix."""
+    colour = import_colour()
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
     grid = np.arange(wavelengths_nm[0], wavelengths_nm[-1] + 0.5, 1.0)
     cmf = np.stack([np.interp(grid, cmfs.wavelengths, cmfs.values[:, i]) for i in range(3)], axis=1)

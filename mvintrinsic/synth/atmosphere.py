@@ -361,7 +361,9 @@ def _spectral_to_rgb(wavelengths: np.ndarray) -> np.ndarray:
     ``XYZ = ∫ S(λ) cmf(λ) dλ`` (nm) with the spectrum ``S`` linear between samples and the
     CIE 1931 2° tables at 1 nm, then the IEC 61966-2-1 XYZ -> sRGB matrix.
     """
-    import colour
+    from ..io import import_colour
+
+    colour = import_colour()
 
     cmfs = colour.MSDS_CMFS["CIE 1931 2 Degree Standard Observer"]
     grid = np.linspace(wavelengths[0], wavelengths[-1], int(round(4 * (wavelengths[-1] - wavelengths[0]))) + 1)

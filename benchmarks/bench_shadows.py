@@ -70,7 +70,7 @@ from mvintrinsic.correspondence import cross_view_agreement
 from mvintrinsic.evaluation import evaluate, read_ground_truth
 from mvintrinsic.io import load_scene, save_decomposition, write_json
 from mvintrinsic.metrics import balanced_error_rate
-from mvintrinsic.multiview_shadows import label_shadows_multiview
+from mvintrinsic.multiview_shadows import MultiViewShadowConfig, label_shadows_multiview
 from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer, step1
 from mvintrinsic.results import SHADOW_LABELS
@@ -88,6 +88,8 @@ SYNTH = {
     "street_sky": ("street", 8, "480x360", 1, ["--sky", "simulated"]),
 }
 METHODS = ("paper", "multiview")
+#: The multi-view labelling's options (the defaults; ``--edge-reference`` changes one).
+MULTIVIEW = MultiViewShadowConfig()
 #: At most this many proxy vertices are tested for cross-view agreement (every k-th).
 AGREEMENT_POINTS = 300_000
 #: Consensus passes compared (``consensus_passes`` in the report).
@@ -140,7 +142,7 @@ def run_scene(folder: Path) -> dict:
     entry["agreement_truth"] = cross_view_agreement(scene.views, quantities, true_labels, points).fraction
     figure = {"image": scene.views[0].image, "truth": truth[scene.views[0].stem].sun_visibility}
     for method in METHODS:
-        config = Config(shadow=ShadowConfig(method=method))
+        config = Config(shadow=ShadowConfig(method=method), multiview=MULTIVIEW)
         start = time.perf_counter()
         result = decompose(scene, config=config)
         sun_radiance = result.lighting.sun_radiance  # Step 2's, the same for both methods
@@ -184,7 +186,7 @@ def consensus_study(scene, quantities, sun_radiance, truth, points) -> dict:
     out = {}
     corr = None
     for passes in CONSENSUS_PASSES:
-        config = dataclasses.replace(Config().multiview, consensus_passes=passes)
+        config = dataclasses.replace(MULTIVIEW, consensus_passes=passes)
         shared = label_shadows_multiview(scene.views, quantities, sun_radiance, config=config, up=scene.up,
                                          correspondences=corr)
         corr = shared.correspondences
@@ -257,7 +259,8 @@ def agreement_scene(folder: Path) -> dict:
     labellings = {"truth": {s: np.where(gt.sun_visibility, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
                             for s, gt in truth.items()}}
     for method in METHODS:
-        result = decompose(scene, config=Config(shadow=ShadowConfig(method=method)), tracer=tracer)
+        result = decompose(scene, config=Config(shadow=ShadowConfig(method=method), multiview=MULTIVIEW),
+                           tracer=tracer)
         labellings[method] = {s: layers.shadow_labels for s, layers in result.layers.items()}
     out = {}
     for name, labels in labellings.items():
@@ -279,9 +282,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=None, help="only these scenes (names)")
     parser.add_argument("--agreement", action="store_true",
                         help="only the cross-view agreement, everywhere and away from true shadow edges")
+    parser.add_argument("--edge-reference", type=int, default=None,
+                        help="MultiViewShadowConfig.edge_reference for the multi-view labelling (default: its default)")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG: image, truth, both labellings per scene")
     args = parser.parse_args(argv)
+    global MULTIVIEW
+    if args.edge_reference is not None:
+        MULTIVIEW = dataclasses.replace(MultiViewShadowConfig(), edge_reference=args.edge_reference)
     if args.smoke:
         from mvintrinsic.cli import demo_scene_path
 
@@ -291,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.scene:
         chosen = {k: v for k, v in chosen.items() if k in args.scene}
     report = {"benchmark": "shadows", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
-              "python": platform.python_version(), "config": Config().to_dict(), "scenes": {}}
+              "python": platform.python_version(), "config": Config(multiview=MULTIVIEW).to_dict(), "scenes": {}}
     if args.agreement:
         report["agreement"] = {name: agreement_scene(folder) for name, folder in chosen.items()}
         if args.out:

@@ -27,6 +27,7 @@ from mvintrinsic.multiview_shadows import (
     build_palette,
     consensus,
     edge_offsets,
+    edge_scale,
     edge_votes,
     grid_cut,
     label_shadows_multiview,
@@ -173,6 +174,7 @@ def test_invalid_pixels_are_undecided():
     ({"visibility_levels": 1}, "visibility_levels"),
     ({"palette_bins": (0.1, 0.0, 0.1)}, "palette_bins"),
     ({"edge_radii": (0, 2)}, "edge_radii"),
+    ({"edge_reference": -1}, "edge_reference"),
     ({"prior_shadow": -0.1}, "prior_shadow"),
     ({"contrast": 0.0}, "contrast"),
     ({"palette_groups": "material"}, "palette_groups"),
@@ -231,6 +233,12 @@ def test_edge_votes_point_the_bright_side_to_the_light():
     assert (lit_vote[:, 14:20] == 0).all() and (shadow_vote[:, 20:26] == 0).all()
     assert (lit_vote[:, :5] == 0).all() and (shadow_vote[:, -5:] == 0).all()  # out of reach of the edge
     assert near.start < near.stop
+
+
+def test_edge_radii_scale_with_the_longer_image_side_only_upward():
+    assert edge_scale((360, 480), 480) == 1 and edge_scale((180, 240), 480) == 1  # never below the radii
+    assert edge_scale((750, 1000), 480) == 2 and edge_scale((1064, 1416), 480) == 3
+    assert edge_scale((750, 1000), 0) == 1  # 0: never scaled
 
 
 def test_edge_offsets_are_symmetric_and_unique():

@@ -407,6 +407,16 @@ def stride_scene(folder: Path, strides: tuple[int, ...] = (2, 3)) -> dict:
 PERSISTENCE_WEIGHT = 0.7
 
 
+def _relit_scene(folder: Path, what: str) -> tuple:
+    """The scene, its relit tags (:func:`relit_tags`; ``what``, the mode, needs them) and the true sky masks."""
+    scene = load_scene(folder)
+    tags = relit_tags(folder, scene.stems)
+    if not tags:
+        raise ValueError(f"{folder}: {what} needs relit renders (gt/relit/<tag>)")
+    truth = read_ground_truth(folder, views=list(scene.stems))
+    return scene, tags, {s: truth[s].sky_mask for s in scene.stems}
+
+
 def _variable_blur(image: np.ndarray, sigma: np.ndarray) -> np.ndarray:
     """``image`` (H, W) blurred by a Gaussian whose standard deviation ``sigma`` (H, W, pixels) varies.
 
@@ -437,13 +447,8 @@ def softness_scene(folder: Path) -> dict:
       visibility (blurred alike): at a small sun move most shadows stay, and where the caster's
       predicted change is uncertain the blend is the least-squares answer.
     """
-    scene = load_scene(folder)
+    scene, tags, sky_mask = _relit_scene(folder, "--softness")
     stems = scene.stems
-    tags = relit_tags(folder, stems)
-    if not tags:
-        raise ValueError(f"{folder}: --softness needs relit renders (gt/relit/<tag>)")
-    truth = read_ground_truth(folder, views=list(stems))
-    sky_mask = {s: truth[s].sky_mask for s in stems}
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
     tracer = Tracer(scene.proxy)
     config = RelightConfig(ray_stride=1, blur=0.0)
@@ -521,13 +526,8 @@ def bounds_scene(folder: Path) -> dict:
     * ``*_truth``: the path tracer's visibility at the new sun (``gt/relit/<tag>/sun_visibility``);
     * ``*_best``: :func:`best_visibility`, the bound of every shadow layer for these layers.
     """
-    scene = load_scene(folder)
+    scene, tags, sky_mask = _relit_scene(folder, "--bounds")
     stems = scene.stems
-    tags = relit_tags(folder, stems)
-    if not tags:
-        raise ValueError(f"{folder}: --bounds needs relit renders (gt/relit/<tag>)")
-    truth = read_ground_truth(folder, views=list(stems))
-    sky_mask = {s: truth[s].sky_mask for s in stems}
     inputs = {v.stem: v.image for v in scene.views}
     tracer = Tracer(scene.proxy)
     print(f"{folder.name}: decomposing {len(stems)} views", flush=True)

@@ -37,6 +37,7 @@ import numpy as np
 import mvintrinsic
 from mvintrinsic import decompose
 from mvintrinsic.evaluation import env_shading_error, evaluate, read_ground_truth
+from mvintrinsic.image_model import total_shading
 from mvintrinsic.io import load_scene, save_decomposition, write_json
 from mvintrinsic.raytrace import Tracer
 
@@ -56,14 +57,14 @@ def _replaced(result, images: dict, env: dict, sun_scale, visibility: dict | Non
         old = layer.sky_shading.astype(np.float64) + layer.indirect_shading
         scale = np.where(old > 0, env[stem] / np.where(old > 0, old, 1.0), 1.0)
         v = layer.visibility if visibility is None else visibility[stem]
-        total = v[..., None] * layer.sun_shading * sun_scale + env[stem]
+        sun, sky, indirect = layer.sun_shading * sun_scale, layer.sky_shading * scale, layer.indirect_shading * scale
+        total = total_shading(sky, indirect, v, sun)  # Eq. 17
         known = (layer.reflectance > 0).any(axis=-1, keepdims=True) & (total > 0)
-        reflectance = np.where(known, images[stem] / np.where(known, total, 1.0), layer.reflectance)
+        reflectance = np.where(known, images[stem] / np.where(known, total, 1.0), layer.reflectance)  # Eq. 2
         layers[stem] = dataclasses.replace(
             layer, reflectance=reflectance.astype(np.float32), visibility=np.asarray(v, np.float32),
-            sun_shading=(layer.sun_shading * sun_scale).astype(np.float32),
-            sky_shading=(layer.sky_shading * scale).astype(np.float32),
-            indirect_shading=(layer.indirect_shading * scale).astype(np.float32))
+            sun_shading=sun.astype(np.float32), sky_shading=sky.astype(np.float32),
+            indirect_shading=indirect.astype(np.float32))
     return dataclasses.replace(result, layers=layers)
 
 

@@ -541,9 +541,8 @@ def bounds_scene(folder: Path) -> dict:
     for tag, (direction, images, vis) in tags.items():
         exact = mesh.visibility(direction, dataclasses.replace(config, blur=0.0))
         true_vis = {s: np.asarray(vis[s], np.float32) for s in stems}
-        rows = {"input": inputs, "gt_mesh": plain["gt"].render(direction, visibility=exact),
-                "gt_caster": ours["gt"].render(direction), "pipeline": ours["pipeline"].render(direction)}
-        for name, relighter in plain.items():
+        rows = {"input": inputs, "gt_caster": ours["gt"].render(direction), "pipeline": ours["pipeline"].render(direction)}
+        for name, relighter in plain.items():  # gt_mesh is row (c)
             rows[f"{name}_mesh"] = relighter.render(direction, visibility=exact)
             rows[f"{name}_truth"] = relighter.render(direction, visibility=true_vis)
             rows[f"{name}_best"] = relighter.render(
@@ -621,27 +620,17 @@ def main(argv: list[str] | None = None) -> int:
               "python": platform.python_version(), "config": dataclasses.asdict(RelightConfig()),
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
-    if args.timing:
-        report["timing"] = {name: time_scene(folder) for name, folder in chosen.items()}
-        if args.out:
-            write_json(args.out, report)
-        return 0
-    if args.stride:
-        report["ray_stride"] = {name: stride_scene(folder) for name, folder in chosen.items()}
-        if args.out:
-            write_json(args.out, report)
-        return 0
-    if args.softness:
-        report["softness"] = {name: softness_scene(folder) for name, folder in chosen.items()}
-        if args.out:
-            write_json(args.out, report)
-        return 0
-    if args.bounds:
-        report["bounds"] = {name: bounds_scene(folder) for name, folder in chosen.items()}
-        report["bounds_summary"] = bounds_summary(report["bounds"])
-        if args.out:
-            write_json(args.out, report)
-        return 0
+    # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
+    studies = (("timing", "timing", time_scene), ("stride", "ray_stride", stride_scene),
+               ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene))
+    for flag, key, study in studies:
+        if getattr(args, flag):
+            report[key] = {name: study(folder) for name, folder in chosen.items()}
+            if key == "bounds":
+                report["bounds_summary"] = bounds_summary(report["bounds"])
+            if args.out:
+                write_json(args.out, report)
+            return 0
     panels = {}
     for name, folder in chosen.items():
         report["scenes"][name], panels[name] = run_scene(folder)

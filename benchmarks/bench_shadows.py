@@ -88,8 +88,6 @@ SYNTH = {
     "street_sky": ("street", 8, "480x360", 1, ["--sky", "simulated"]),
 }
 METHODS = ("paper", "multiview")
-#: The multi-view labelling's options (the defaults; ``--edge-reference`` changes one).
-MULTIVIEW = MultiViewShadowConfig()
 #: At most this many proxy vertices are tested for cross-view agreement (every k-th).
 AGREEMENT_POINTS = 300_000
 #: Consensus passes compared (``consensus_passes`` in the report).
@@ -128,7 +126,7 @@ def precision_recall(truth: dict, labels: dict) -> tuple[float | None, float | N
     return precision, recall
 
 
-def run_scene(folder: Path) -> dict:
+def run_scene(folder: Path, multiview: MultiViewShadowConfig) -> dict:
     scene = load_scene(folder)
     truth = read_ground_truth(folder, views=[v.stem for v in scene.views])
     h, w = scene.views[0].shape
@@ -142,7 +140,7 @@ def run_scene(folder: Path) -> dict:
     entry["agreement_truth"] = cross_view_agreement(scene.views, quantities, true_labels, points).fraction
     figure = {"image": scene.views[0].image, "truth": truth[scene.views[0].stem].sun_visibility}
     for method in METHODS:
-        config = Config(shadow=ShadowConfig(method=method), multiview=MULTIVIEW)
+        config = Config(shadow=ShadowConfig(method=method), multiview=multiview)
         start = time.perf_counter()
         result = decompose(scene, config=config)
         sun_radiance = result.lighting.sun_radiance  # Step 2's, the same for both methods
@@ -172,11 +170,11 @@ def run_scene(folder: Path) -> dict:
               f"LMSE R {e['lmse_reflectance']:.4f} S {e['lmse_shading']:.4f} "
               f"labelling {labelling:.2f} s/view", flush=True)
     entry["ber_ratio"] = entry["multiview"]["ber"] / entry["paper"]["ber"]
-    entry["consensus_passes"] = consensus_study(scene, quantities, sun_radiance, truth, points)
+    entry["consensus_passes"] = consensus_study(scene, quantities, sun_radiance, truth, points, multiview)
     return entry, figure
 
 
-def consensus_study(scene, quantities, sun_radiance, truth, points) -> dict:
+def consensus_study(scene, quantities, sun_radiance, truth, points, multiview: MultiViewShadowConfig) -> dict:
     """The multi-view labels with 0-3 consensus passes: mean per-view BER and cross-view agreement.
 
     Same inputs as the decomposition's (Steps 1-2 with the same seed), labels only, so it isolates
@@ -186,7 +184,7 @@ def consensus_study(scene, quantities, sun_radiance, truth, points) -> dict:
     out = {}
     corr = None
     for passes in CONSENSUS_PASSES:
-        config = dataclasses.replace(MULTIVIEW, consensus_passes=passes)
+        config = dataclasses.replace(multiview, consensus_passes=passes)
         shared = label_shadows_multiview(scene.views, quantities, sun_radiance, config=config, up=scene.up,
                                          correspondences=corr)
         corr = shared.correspondences
@@ -243,7 +241,7 @@ def away_from_edges(labels: dict, true_lit: dict) -> dict:
     return out
 
 
-def agreement_scene(folder: Path) -> dict:
+def agreement_scene(folder: Path, multiview: MultiViewShadowConfig) -> dict:
     """Cross-view agreement of the true, paper and multi-view labels, everywhere and away from true edges.
 
     ``all``: the measure of :func:`run_scene`; ``interior``: the same with the pixels within one
@@ -256,16 +254,17 @@ def agreement_scene(folder: Path) -> dict:
     tracer = Tracer(scene.proxy)
     quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
     points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
-    labellings = {"truth": {s: np.where(gt.sun_visibility, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
-                            for s, gt in truth.items()}}
+    true_lit = {s: gt.sun_visibility for s, gt in truth.items()}
+    labellings = {"truth": {s: np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
+                            for s, lit in true_lit.items()}}
     for method in METHODS:
-        result = decompose(scene, config=Config(shadow=ShadowConfig(method=method), multiview=MULTIVIEW),
+        result = decompose(scene, config=Config(shadow=ShadowConfig(method=method), multiview=multiview),
                            tracer=tracer)
         labellings[method] = {s: layers.shadow_labels for s, layers in result.layers.items()}
     out = {}
     for name, labels in labellings.items():
         everywhere = cross_view_agreement(scene.views, quantities, labels, points)
-        interior = cross_view_agreement(scene.views, quantities, away_from_edges(labels, {s: gt.sun_visibility for s, gt in truth.items()}), points)
+        interior = cross_view_agreement(scene.views, quantities, away_from_edges(labels, true_lit), points)
         out[name] = {"all": everywhere.fraction, "all_points": everywhere.points,
                      "interior": interior.fraction, "interior_points": interior.points}
     print(f"{folder.name:15s} agreement all / away from true edges: " + "  ".join(
@@ -287,9 +286,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG: image, truth, both labellings per scene")
     args = parser.parse_args(argv)
-    global MULTIVIEW
+    multiview = MultiViewShadowConfig()
     if args.edge_reference is not None:
-        MULTIVIEW = dataclasses.replace(MultiViewShadowConfig(), edge_reference=args.edge_reference)
+        multiview = dataclasses.replace(multiview, edge_reference=args.edge_reference)
     if args.smoke:
         from mvintrinsic.cli import demo_scene_path
 
@@ -299,15 +298,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.scene:
         chosen = {k: v for k, v in chosen.items() if k in args.scene}
     report = {"benchmark": "shadows", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
-              "python": platform.python_version(), "config": Config(multiview=MULTIVIEW).to_dict(), "scenes": {}}
+              "python": platform.python_version(), "config": Config(multiview=multiview).to_dict(), "scenes": {}}
     if args.agreement:
-        report["agreement"] = {name: agreement_scene(folder) for name, folder in chosen.items()}
+        report["agreement"] = {name: agreement_scene(folder, multiview) for name, folder in chosen.items()}
         if args.out:
             write_json(args.out, report)
         return 0
     panels = {}
     for name, folder in chosen.items():
-        report["scenes"][name], panels[name] = run_scene(folder)
+        report["scenes"][name], panels[name] = run_scene(folder, multiview)
     rows = report["scenes"].values()
     summary = {}
     for method in METHODS:

@@ -549,6 +549,12 @@ def _image_array(value: object, name: str, shape: tuple[int, ...] | None, dtype:
     return as_array(value, name, shape=expected, dtype=dtype, finite=finite)
 
 
+def _check_rays(origins: object, sun_direction: object) -> tuple[np.ndarray, np.ndarray]:
+    """``origins`` as (N, 3) float64 and ``sun_direction`` as a unit vector, each error naming its argument."""
+    return (as_array(origins, "origins", shape=(None, 3), dtype=np.float64),
+            as_unit_vector(sun_direction, "sun_direction"))
+
+
 def _rays(origins: np.ndarray, direction: np.ndarray):
     import open3d as o3d
 
@@ -1061,8 +1067,7 @@ class ShadowCaster:
         sun_direction : (3,) array_like
             Unit direction toward the sun, world frame.
         """
-        origins = as_array(origins, "origins", shape=(None, 3), dtype=np.float64)
-        return self._occluded(origins, as_unit_vector(sun_direction, "sun_direction"), batch=batch)
+        return self._occluded(*_check_rays(origins, sun_direction), batch=batch)
 
     def hit_distance(self, origins: np.ndarray, sun_direction: np.ndarray, *,
                      batch: int = DEFAULT_BATCH) -> np.ndarray:
@@ -1078,8 +1083,7 @@ class ShadowCaster:
         sun_direction : (3,) array_like
             Unit direction toward the sun, world frame.
         """
-        origins = as_array(origins, "origins", shape=(None, 3), dtype=np.float64)
-        sun = as_unit_vector(sun_direction, "sun_direction")
+        origins, sun = _check_rays(origins, sun_direction)
         return self._query(origins, sun, np.inf, np.float32, lambda rays: self._scene.cast_rays(rays)["t_hit"], batch)
 
     def _occluded(self, origins: np.ndarray, sun: np.ndarray, *, batch: int) -> np.ndarray:

@@ -117,6 +117,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._validation import as_unit_vector, is_real
+
 __all__ = [
     "MIE_PHASE_FUNCTIONS",
     "MITSUBA_ENVMAP_TO_WORLD",
@@ -276,7 +278,7 @@ class AtmosphereConfig:
                 if not (_is_int(value) and value >= (4 if f.name == "n_wavelengths" else 2)):
                     low = 4 if f.name == "n_wavelengths" else 2
                     raise ValueError(f"{f.name} must be an integer >= {low}, got {value!r}")
-            elif not (_is_real(value) and math.isfinite(value)):
+            elif not (is_real(value) and math.isfinite(value)):
                 raise ValueError(f"{f.name} must be a finite real number, got {value!r}")
         positive = ("ground_radius", "rayleigh_scale_height", "mie_scale_height", "mie_albedo", "ozone_width",
                     "sun_temperature", "solar_constant", "sun_angular_radius")
@@ -313,10 +315,6 @@ class AtmosphereConfig:
 
 def _is_int(value: object) -> bool:
     return isinstance(value, (int, np.integer)) and not isinstance(value, (bool, np.bool_))
-
-
-def _is_real(value: object) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, (bool, np.bool_))
 
 
 # ------------------------------------------------------------------------------------------------
@@ -654,21 +652,13 @@ def _texel_directions(rows: np.ndarray, cols: np.ndarray, height: int) -> np.nda
 
 
 def _check_sun_direction(sun_direction: object) -> np.ndarray:
+    """A unit, read-only sun direction above the horizon (world Z up)."""
     try:
-        sun = np.array(sun_direction, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"sun_direction must be a finite 3-vector, got {sun_direction!r}") from exc
-    if sun.shape != (3,):
-        raise ValueError(f"sun_direction must be a finite 3-vector of shape (3,), got shape {sun.shape}")
-    if not np.isfinite(sun).all():
-        raise ValueError(f"sun_direction must be finite, got {sun.tolist()}")
-    norm = float(np.linalg.norm(sun))
-    if norm < 1e-12:
-        raise ValueError(f"sun_direction must be a non-zero vector, got {sun.tolist()}")
-    sun = sun / norm
+        sun = as_unit_vector(sun_direction, "sun_direction")
+    except TypeError as exc:  # not numeric at all: a ValueError here, as clear_sky documents
+        raise ValueError(str(exc)) from exc
     if sun[2] <= 0.0:
         raise ValueError(f"sun_direction must be above the horizon (z > 0, world Z up), got {sun.tolist()}")
-    sun.flags.writeable = False
     return sun
 
 
@@ -794,7 +784,7 @@ def clear_sky(sun_direction: object, *, width: int = 512, config: AtmosphereConf
     sun = _check_sun_direction(sun_direction)
     if not (_is_int(width) and width >= 8 and width % 4 == 0):
         raise ValueError(f"width must be an integer multiple of 4, >= 8, got {width!r}")
-    if not (_is_real(scale) and math.isfinite(scale) and scale > 0):
+    if not (is_real(scale) and math.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a finite number > 0, got {scale!r}")
     config = AtmosphereConfig() if config is None else config
     if not isinstance(config, AtmosphereConfig):
@@ -806,14 +796,15 @@ def clear_sky(sun_direction: object, *, width: int = 512, config: AtmosphereConf
     spectral = inscatter * optics.solar  # W m^-2 sr^-1 nm^-1
     # Ground: Lambertian, lit by the transmitted sun and by the sky of the upper half of the map
     # (exact ∫ cos θ dω of each row; H is even so the horizon is a row boundary).
-    direct = optics.solar * _sun_transmittance(sun, config) * sun[2]
+    transmitted = optics.solar * _sun_transmittance(sun, config)  # W m^-2 nm^-1 at the observer
+    direct = transmitted * sun[2]
     edges = math.pi * np.arange(height // 2 + 1) / height
     row_weight = (2.0 * math.pi / width) * 0.5 * (np.sin(edges[1:]) ** 2 - np.sin(edges[:-1]) ** 2)
     upper = spectral.reshape(height, width, -1)[: height // 2]
     sky_irradiance = np.einsum("vul,v->l", upper, row_weight)
     spectral += to_ground * (config.ground_albedo / math.pi) * (direct + sky_irradiance)
     radiance = (scale * spectral @ optics.to_rgb).reshape(height, width, 3)
-    sun_radiance = scale * (optics.solar * _sun_transmittance(sun, config) / math.pi) @ optics.to_rgb
+    sun_radiance = scale * (transmitted / math.pi) @ optics.to_rgb
     radiance = np.ascontiguousarray(np.maximum(radiance, 0.0), dtype=np.float32)
     radiance.flags.writeable = False
     sun_radiance = np.maximum(sun_radiance, 0.0)

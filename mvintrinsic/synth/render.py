@@ -35,6 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .._validation import is_real
 from ..camera import Camera
 from .types import SynthScene
 
@@ -155,7 +156,7 @@ class RenderConfig:
     def __post_init__(self) -> None:
         if self.sky not in SKIES:
             raise ValueError(f"sky must be one of {', '.join(map(repr, SKIES))}, got {self.sky!r}")
-        if not isinstance(self.aerosol_scale, (int, float)) or not 0 < self.aerosol_scale < math.inf:
+        if not is_real(self.aerosol_scale) or not 0 < self.aerosol_scale < math.inf:
             raise ValueError(f"aerosol_scale must be a finite number > 0, got {self.aerosol_scale!r}")
 
 
@@ -249,6 +250,7 @@ class MitsubaScene:
         self.workdir = Path(workdir)
         self.workdir.mkdir(parents=True, exist_ok=True)
         self.shapes = {}
+        self._envmaps = {}  # ClearSky -> Mitsuba emitter entries (sky="simulated")
         bsdfs = {name: _bsdf(self.mi, m) for name, m in scene.materials.items()}
         for mesh in scene.meshes:
             file = self.workdir / f"{mesh.name}.ply"
@@ -261,7 +263,10 @@ class MitsubaScene:
         if config.sky == "simulated":
             from .atmosphere import envmap_emitter
 
-            entries = envmap_emitter(simulated_sky(sun_direction, config), self.workdir)
+            sky_model = simulated_sky(sun_direction, config)
+            if sky_model not in self._envmaps:  # its EXR is written once, not for every pass
+                self._envmaps[sky_model] = envmap_emitter(sky_model, self.workdir)
+            entries = self._envmaps[sky_model]
             return {k: v for k, v in entries.items() if (k == "sun" and sun and config.sun) or (k == "sky" and sky)}
         return {"emitter": {
             "type": "sunsky",

@@ -46,7 +46,8 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
   plus the change of the proxy's cosine term,
   ``S_sun' = S_sun + L_sun (max(0, n . d') - max(0, n . d))``; in full shadow (``v_sun = 0``),
   where the image never observed ``S_sun``, ``S_sun' = L_sun max(0, n . d')``. ``n`` is the
-  proxy normal of the pixel (:func:`receiver_normals`), ``L_sun`` the decomposition's;
+  proxy normal of the pixel, smoothed as in Step 1 (:func:`receiver_normals`,
+  :attr:`RelightConfig.normal_smoothing`), ``L_sun`` the decomposition's;
 * ``S_sky'``, ``S_ind'``: :attr:`RelightConfig.sky` selects
 
   - ``"paper"`` (default): our reading of the paper's adjustment, "shifting S_sky towards red in
@@ -260,7 +261,7 @@ from ._validation import as_array, as_unit_vector, describe, is_real
 from .camera import Camera
 from .image_model import LUMINANCE_WEIGHTS
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
+from .raytrace import DEFAULT_BATCH, Tracer, smooth_normals, triangle_scene
 from .raytrace import sun_visibility as proxy_vertex_visibility
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene, Sun
@@ -337,6 +338,12 @@ class RelightConfig:
         Metres a sun ray starts from its receiver point along the sun direction, against
         self-intersection; >= 0. Not in the paper; 0.02 as Step 1's ``ray_offset`` (about a TSDF
         voxel).
+    normal_smoothing : float
+        Standard deviation (metres) of the smoothing of the proxy's vertex normals that give the
+        receivers' ``max(0, cos w_sun)`` and the proxy's sun visibility at the new sun
+        (:func:`mvintrinsic.raytrace.smooth_normals`); >= 0, 0: the proxy's own normals. Not in
+        the paper; 0.4 as Step 1's :attr:`~mvintrinsic.raytrace.Step1Config.normal_smoothing`,
+        so that the relit ``S_sun`` uses the normals the decomposition used.
     sky : {"model", "paper"}
         How the environment shading follows the sun (:data:`SKY_ADJUSTMENTS`, module docstring,
         "Adjusting shading"). ``"paper"``: our reading of the paper's adjustment, a red shift of
@@ -393,6 +400,7 @@ class RelightConfig:
     min_proxy_hits: float = 0.3
     blur: float = 1.0
     ray_offset: float = 0.02
+    normal_smoothing: float = 0.4
     sky: str = "paper"
     turbidity: float = 3.5
     light_dropped: bool = True
@@ -424,7 +432,7 @@ class RelightConfig:
             if not is_real(value) or not 0.0 <= value <= 1.0:
                 raise ValueError(f"{name} must be a number in [0, 1], got {value!r}")
             object.__setattr__(self, name, float(value))
-        for name in ("blur", "ray_offset", "completion_distance"):
+        for name in ("blur", "ray_offset", "completion_distance", "normal_smoothing"):
             value = getattr(self, name)
             if not is_real(value) or not 0.0 <= value < np.inf:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -1295,10 +1303,13 @@ def as_sun_direction(sun: object, *, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.nda
     return out
 
 
-def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int]) -> np.ndarray:
-    """Unit proxy normals of a view's pixels from its camera-ray ``hits`` (see :func:`receiver_normals`)."""
+def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int], vertex_normals: np.ndarray | None = None
+                   ) -> np.ndarray:
+    """Unit normals of a view's pixels from its camera-ray ``hits`` (see :func:`receiver_normals`):
+    ``vertex_normals`` (the proxy's by default) interpolated."""
     covered = hits.hit.reshape(shape)
-    normals = tracer.interpolate(tracer.proxy.normals, hits).reshape(*shape, 3)
+    source = tracer.proxy.normals if vertex_normals is None else vertex_normals
+    normals = tracer.interpolate(source, hits).reshape(*shape, 3)
     length = np.linalg.norm(np.nan_to_num(normals), axis=-1)
     # Opposite vertex normals can cancel in the interpolation: take the hit's geometric normal there.
     degenerate = covered & (length < 1e-6)
@@ -1309,7 +1320,7 @@ def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int]) -> np.ndarray:
     return nearest_fill(normals, covered)
 
 
-def receiver_normals(camera: Camera, tracer: Tracer) -> np.ndarray:
+def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float = 0.0) -> np.ndarray:
     """Unit proxy normal of every pixel's receiver point (the ``n`` of the relit ``S_sun``, Sec. 8).
 
     As :func:`mvintrinsic.pixels.pixel_quantities` does it: the proxy's vertex normals
@@ -1322,6 +1333,10 @@ def receiver_normals(camera: Camera, tracer: Tracer) -> np.ndarray:
     camera : Camera
     tracer : Tracer
         Ray caster over the proxy.
+    normal_smoothing : float, optional
+        Standard deviation (metres) of the smoothing of the vertex normals first
+        (:func:`mvintrinsic.raytrace.smooth_normals`; :attr:`RelightConfig.normal_smoothing`);
+        0 (the default): the proxy's own normals.
 
     Returns
     -------
@@ -1331,12 +1346,15 @@ def receiver_normals(camera: Camera, tracer: Tracer) -> np.ndarray:
     Raises
     ------
     ValueError
-        If no pixel ray hits the proxy.
+        If no pixel ray hits the proxy, or ``normal_smoothing`` is negative or not finite.
     """
     camera = _check_camera(camera)
     tracer = _check_tracer(tracer)
+    if not is_real(normal_smoothing) or not 0.0 <= normal_smoothing < np.inf:
+        raise ValueError(f"normal_smoothing must be a finite number >= 0 (metres), got {normal_smoothing!r}")
     hits, _, _ = _cast_pixels(camera, tracer)
-    return _pixel_normals(tracer, hits, camera.shape)
+    vertex_normals = smooth_normals(tracer.proxy, normal_smoothing) if normal_smoothing > 0 else None
+    return _pixel_normals(tracer, hits, camera.shape, vertex_normals)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1647,13 +1665,17 @@ class Relighter:
         self._batch = batch
         timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0}
         receivers, normals, hits, known, cosine = {}, {}, {}, {}, {}
+        start = time.perf_counter()
+        self._vertex_normals = (smooth_normals(tracer.proxy, config.normal_smoothing)
+                                if config.normal_smoothing > 0 else tracer.proxy.normals)
+        timings["receivers"] += time.perf_counter() - start
         reflectance, visibility, casters, lit_points = {}, {}, {}, {}
         for view in scene.views:
             stem, camera = view.stem, view.camera
             start = time.perf_counter()
             ray_hits, t, hit = _cast_pixels(camera, tracer, batch, name=f"scene (view {stem!r})")
             receivers[stem] = _read_only(receiver_points(camera, t))
-            normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape))
+            normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape, self._vertex_normals))
             hits[stem] = ray_hits
             cosine[stem] = np.maximum(normals[stem] @ capture, 0.0)  # max(0, cos w_sun), Eq. (1)
             timings["receivers"] += time.perf_counter() - start
@@ -1771,7 +1793,7 @@ class Relighter:
         """
         direction = as_sun_direction(sun, up=self.up)
         proxy = self.tracer.proxy
-        vertex = proxy_vertex_visibility(proxy.vertices, proxy.normals, direction, self.tracer,
+        vertex = proxy_vertex_visibility(proxy.vertices, self._vertex_normals, direction, self.tracer,
                                          ray_offset=self.config.ray_offset, batch=self._batch)
         out = {}
         for view in self.scene.views:

@@ -19,6 +19,7 @@ from mvintrinsic.raytrace import (
     morton_order,
     rasterize,
     ray_radiance,
+    smooth_normals,
     step1,
     subdivide,
     sun_visibility,
@@ -301,6 +302,7 @@ def test_step1_on_the_demo_scene_with_a_clean_proxy(demo_clean):
     assert result.sky_model.converged and 1.7 <= result.sky_model.turbidity <= 10
     assert abs(result.horizon.plane[2]) > 0.99 and abs(result.horizon.plane[3]) < 0.05  # the ground z = 0
     assert set(result.timings) >= {"environment", "vertex_radiance", "environment_shading", "sun_visibility"}
+    np.testing.assert_array_equal(result.normals, smooth_normals(scene.proxy, Step1Config().normal_smoothing))
     error = env_error_in_gt_shadow(folder, scene, result)
     assert np.all(error <= CLEAN_PROXY_ENV_ERROR_MAX), error
     # ~v against the ground truth, all views
@@ -309,6 +311,70 @@ def test_step1_on_the_demo_scene_with_a_clean_proxy(demo_clean):
     tracer = Tracer(scene.proxy)
     visibility = {v.stem: rasterize(result.shading.visibility, v.camera, tracer) for v in scene.views}
     assert visibility_error(folder, visibility)["ber"] < CLEAN_PROXY_BER_MAX
+
+
+# -- normal smoothing ----------------------------------------------------------------------------
+def grid_mesh(n=41, spacing=0.05, z=0.0, x0=0.0):
+    """An n x n vertex grid in the plane z (spacing metres), two triangles per cell."""
+    i, j = np.meshgrid(np.arange(n), np.arange(n), indexing="ij")
+    vertices = np.stack([x0 + i.ravel() * spacing, j.ravel() * spacing, np.full(n * n, z)], axis=1)
+    k = (i[:-1, :-1] * n + j[:-1, :-1]).ravel()
+    triangles = np.concatenate([np.stack([k, k + n, k + 1], 1), np.stack([k + 1, k + n, k + n + 1], 1)])
+    return vertices, triangles
+
+
+def noisy_normals(n_vertices, degrees, rng):
+    tilt = np.radians(degrees) * np.abs(rng.normal(size=n_vertices))
+    phi = rng.uniform(0, 2 * np.pi, n_vertices)
+    return np.stack([np.sin(tilt) * np.cos(phi), np.sin(tilt) * np.sin(phi), np.cos(tilt)], axis=1)
+
+
+def test_smoothing_recovers_a_noisy_planes_normal_and_its_grazing_sun_cosine():
+    # An MVS-like facade: normals tilted by |N(0, 30 degrees)| (median 20), the sun grazing it (cos 0.26).
+    rng = np.random.default_rng(0)
+    vertices, triangles = grid_mesh()
+    proxy = Proxy(vertices, noisy_normals(len(vertices), 30.0, rng), triangles)
+    smoothed = smooth_normals(proxy, 0.4)
+    np.testing.assert_allclose(np.linalg.norm(smoothed, axis=1), 1.0, atol=1e-12)
+    inner = (np.abs(vertices[:, :2] - 1.0) < 0.5).all(axis=1)  # a metre away from the borders
+    before = np.degrees(np.arccos(np.clip(proxy.normals[inner, 2], -1, 1)))
+    after = np.degrees(np.arccos(np.clip(smoothed[inner, 2], -1, 1)))
+    assert np.median(before) > 15 and np.median(after) < 2.0, (np.median(before), np.median(after))
+    sun = np.array([np.sin(np.radians(75)), 0.0, np.cos(np.radians(75))])
+    error = np.abs(np.maximum(smoothed[inner] @ sun, 0) - sun[2])
+    noisy_error = np.abs(np.maximum(proxy.normals[inner] @ sun, 0) - sun[2])
+    assert np.median(error) < 0.02 and np.median(noisy_error) > 0.1, (np.median(error), np.median(noisy_error))
+
+
+def test_smoothing_keeps_exact_planes_and_unconnected_surfaces_apart():
+    # Two parallel grids 10 cm apart, facing opposite ways: averaging in space would cancel them.
+    a, ta = grid_mesh(n=11)
+    b, tb = grid_mesh(n=11, z=0.1)
+    vertices, triangles = merge((a, ta), (b, tb))
+    normals = np.concatenate([np.tile([0.0, 0.0, 1.0], (len(a), 1)), np.tile([0.0, 0.0, -1.0], (len(b), 1))])
+    proxy = Proxy(vertices, normals, triangles)
+    np.testing.assert_allclose(smooth_normals(proxy, 0.3), normals, atol=1e-12)
+
+
+def test_smoothing_a_coarse_mesh_or_a_point_cloud_changes_nothing():
+    vertices, triangles = grid_mesh(n=5, spacing=2.0)
+    rng = np.random.default_rng(1)
+    proxy = Proxy(vertices, noisy_normals(len(vertices), 20.0, rng), triangles)
+    np.testing.assert_array_equal(smooth_normals(proxy, 0.4), proxy.normals)  # edges of 2 m >> 0.4 m
+    cloud = Proxy(vertices, proxy.normals)
+    np.testing.assert_array_equal(smooth_normals(cloud, 0.4), proxy.normals)
+
+
+def test_normal_smoothing_is_validated():
+    vertices, triangles = grid_mesh(n=3)
+    proxy = Proxy(vertices, np.tile([0.0, 0.0, 1.0], (len(vertices), 1)), triangles)
+    for bad in (0.0, -1.0, np.inf, "0.4", True):
+        with pytest.raises(ValueError, match="sigma"):
+            smooth_normals(proxy, bad)
+    for bad in (-0.1, np.nan, "x"):
+        with pytest.raises(ValueError, match="normal_smoothing"):
+            Step1Config(normal_smoothing=bad)
+    assert Step1Config(normal_smoothing=0).normal_smoothing == 0
 
 
 def test_subdivide_keeps_the_surface_and_bounds_edges():

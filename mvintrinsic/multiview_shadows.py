@@ -66,7 +66,8 @@ the views are given. The per-pixel most probable visibility of the last palette 
 Measured (``benchmarks/bench_shadows.py``, nine scenes with MVS-like proxies, 240x180 to
 1000x750, Step 1's smoothed normals): balanced error 0.074-0.150 against the paper's 0.183-0.301
 (0.37-0.53 of it), shadow recall 0.81-0.95 against 0.47-0.75, cross-view agreement 0.952-0.992
-against 0.644-0.900, and 6.5 s per 1000x750 view on 2 cores. The choices measured and not kept are in ``docs/step3.md``.
+against 0.644-0.900, and 6.5 s per 1000x750 view on 2 cores. The choices measured and not kept
+are in ``docs/step3.md``.
 
 References
 ----------
@@ -162,8 +163,8 @@ class MultiViewShadowConfig:
         ``k = round(side / edge_reference)`` times as long (``k >= 2``) uses ``k`` times the radii
         (:func:`edge_scale`); 0 (the default) never scales. Off by default, by measurement
         (``benchmarks/bench_shadows.py --edge-reference 480``, with the proxy's own normals, before
-        Step 1 smoothed them): on the 1000x750 street (``street_1000``) the doubled radii lower the BER from 0.179 to 0.148, but raise the
-        reflectance LMSE from 0.0563 to 0.0705 and lower the agreement from 0.953 to 0.949; the
+        Step 1 smoothed them): on the 1000x750 street (``street_1000``) the doubled radii lower
+        the BER from 0.179 to 0.148, but raise the reflectance LMSE from 0.0563 to 0.0705 and lower the agreement from 0.953 to 0.949; the
         1000x750 courtyard is unchanged (BER 0.083, LMSE 0.1188). Scaling smaller views down is
         not offered: halving the radii raised the 240x180 demo's BER from 0.164 to 0.197.
     edge_directions : int

@@ -981,8 +981,11 @@ def step1(
     3. sky: colour sky detector above the horizon, Preetham sky fit (Eq. 4), completion of the
        map (model above the horizon, diffusion below);
     4. proxy radiance: median of each vertex's observations;
-    5. ``S_sky`` and ``S_ind`` by cosine-weighted hemisphere rays at the proxy vertices (or at a
-       voxel subsample, interpolated to all vertices), ``~v`` by one shadow ray per vertex.
+    5. normals: the proxy's vertex normals smoothed (:attr:`Step1Config.normal_smoothing`, not in
+       the paper); every quantity below uses them;
+    6. ``S_sky`` and ``S_ind`` by cosine-weighted hemisphere rays at the proxy vertices (or at a
+       voxel subsample, interpolated to all vertices), ``~v`` by one shadow ray per vertex, and
+       ``max(0, cos w_sun)`` (Eq. 1).
 
     Parameters
     ----------
@@ -1030,6 +1033,9 @@ def step1(
     points, normals = scene.proxy.vertices, scene.proxy.normals
     if config.normal_smoothing > 0:
         normals = smooth_normals(scene.proxy, config.normal_smoothing)
+    timings["normals"] = time.perf_counter() - start
+
+    start = time.perf_counter()
     traced = np.arange(len(points)) if config.subsample is None else voxel_subsample(points, config.subsample)
     sky, indirect = environment_shading(
         points[traced], normals[traced], tracer, environment, radiance, n_rays=config.n_rays,

@@ -1303,13 +1303,11 @@ def as_sun_direction(sun: object, *, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.nda
     return out
 
 
-def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int], vertex_normals: np.ndarray | None = None
-                   ) -> np.ndarray:
-    """Unit normals of a view's pixels from its camera-ray ``hits`` (see :func:`receiver_normals`):
-    ``vertex_normals`` (the proxy's by default) interpolated."""
+def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int], vertex_normals: np.ndarray) -> np.ndarray:
+    """Unit normals of a view's pixels from its camera-ray ``hits``: ``vertex_normals`` (N, 3)
+    interpolated (see :func:`receiver_normals`)."""
     covered = hits.hit.reshape(shape)
-    source = tracer.proxy.normals if vertex_normals is None else vertex_normals
-    normals = tracer.interpolate(source, hits).reshape(*shape, 3)
+    normals = tracer.interpolate(vertex_normals, hits).reshape(*shape, 3)
     length = np.linalg.norm(np.nan_to_num(normals), axis=-1)
     # Opposite vertex normals can cancel in the interpolation: take the hit's geometric normal there.
     degenerate = covered & (length < 1e-6)
@@ -1353,7 +1351,7 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
     if not is_real(normal_smoothing) or not 0.0 <= normal_smoothing < np.inf:
         raise ValueError(f"normal_smoothing must be a finite number >= 0 (metres), got {normal_smoothing!r}")
     hits, _, _ = _cast_pixels(camera, tracer)
-    vertex_normals = smooth_normals(tracer.proxy, normal_smoothing) if normal_smoothing > 0 else None
+    vertex_normals = smooth_normals(tracer.proxy, normal_smoothing) if normal_smoothing > 0 else tracer.proxy.normals
     return _pixel_normals(tracer, hits, camera.shape, vertex_normals)
 
 

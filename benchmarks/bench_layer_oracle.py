@@ -17,7 +17,9 @@ with the reflectance recomputed by Eq. 2, ``R = I / (v S_sun k_sun + S_env')``, 
 * ``true_v_env_balanced``: both.
 
 Also the signed median relative error of ``S_env`` in the umbra
-(:func:`mvintrinsic.evaluation.env_shading_error`). This measures how far issue 16's targets
+(:func:`mvintrinsic.evaluation.env_shading_error`) and issue 16's cross-view reflectance spread
+(:func:`mvintrinsic.correspondence.cross_view_reflectance_spread` over the proxy's vertices) of
+Step 3's reflectance and, as the floor the sampling sets, of the ground-truth reflectance. This measures how far issue 16's targets
 (reflectance LMSE 30% lower) can be reached by correcting ``S_env`` alone, as the paper's Step 4
 does. Run with the package importable.
 """
@@ -35,11 +37,13 @@ from pathlib import Path
 import numpy as np
 
 import mvintrinsic
-from mvintrinsic import decompose
+from mvintrinsic import Config, decompose
+from mvintrinsic.correspondence import cross_view_reflectance_spread
 from mvintrinsic.evaluation import env_shading_error, evaluate, read_ground_truth
 from mvintrinsic.image_model import total_shading
 from mvintrinsic.io import load_scene, save_decomposition, write_json
-from mvintrinsic.raytrace import Tracer
+from mvintrinsic.pipeline import carry_to_pixels
+from mvintrinsic.raytrace import Tracer, step1
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -70,7 +74,10 @@ def _replaced(result, images: dict, env: dict, sun_scale, visibility: dict | Non
 
 def oracle_scene(folder: Path) -> dict:
     scene = load_scene(folder)
-    result = decompose(scene, tracer=Tracer(scene.proxy))
+    tracer = Tracer(scene.proxy)
+    result = decompose(scene, tracer=tracer)
+    # The same Step 1 as decompose's (seeded): the proxy depth of every pixel, for the spread.
+    quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
     truth = read_ground_truth(folder, views=list(scene.stems))
     images = {v.stem: v.image.astype(np.float64) for v in scene.views}
     estimate = {s: layer.sky_shading.astype(np.float64) + layer.indirect_shading for s, layer in result.layers.items()}
@@ -90,7 +97,15 @@ def oracle_scene(folder: Path) -> dict:
         "true_v": _replaced(result, images, estimate, 1.0, true_v),
         "true_v_env_balanced": _replaced(result, images, env_k, k, true_v),
     }
-    out = {"env_scale_k": k.tolist(),
+    vertices = np.asarray(scene.proxy.vertices)
+    spread = {}
+    for label, values in (("step3", {s: layer.reflectance for s, layer in result.layers.items()}),
+                          ("truth", {s: truth[s].reflectance for s in estimate})):
+        measured = cross_view_reflectance_spread(scene.views, quantities, values, vertices)
+        spread[label] = {"median": measured.median, "p90": measured.p90, "points": measured.points}
+        print(f"{folder.name:14s} spread {label:6s} median {np.round(measured.median, 3)} "
+              f"p90 {np.round(measured.p90, 3)}", flush=True)
+    out = {"reflectance_spread": spread, "env_scale_k": k.tolist(),
            "env_umbra_signed_median_rel_error": env_shading_error(folder, estimate, region="umbra")[
                "median_signed_rel_error"]}
     for name, variant in variants.items():

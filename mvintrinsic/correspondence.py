@@ -19,7 +19,8 @@ Pixels whose ray misses the proxy (sky, or geometry the proxy lost: ``filled``) 
 correspondence. Everything is per pixel centre (nearest pixel, no interpolation).
 
 :func:`fuse_views` averages a per-pixel quantity over a pixel and its consistent correspondences;
-:func:`cross_view_agreement` measures how often the views give one surface point the same label.
+:func:`cross_view_agreement` measures how often the views give one surface point the same label;
+:func:`cross_view_reflectance_spread` how far apart their reflectances of it are.
 """
 
 from __future__ import annotations
@@ -37,8 +38,8 @@ from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
 from .scene import View
 
-__all__ = ["Agreement", "Correspondences", "cross_view_agreement", "find_correspondences", "fuse_views",
-           "log_image", "surface_points"]
+__all__ = ["Agreement", "Correspondences", "ReflectanceSpread", "cross_view_agreement", "cross_view_reflectance_spread",
+           "find_correspondences", "fuse_views", "log_image", "surface_points"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -277,6 +278,36 @@ def fuse_views(values: Mapping[str, np.ndarray], correspondences: Correspondence
     return out
 
 
+def _seen_pixels(ordered: Sequence[View], quantities: Mapping[str, PixelQuantities], points: object,
+                 depth_tolerance: object, photo_tolerance: object, blur: object) -> np.ndarray:
+    """``(M, N)`` flat pixel index of each point in each view that sees it, else -1.
+
+    A view sees a point when the point projects into the image, passes the depth test against the
+    view's proxy depth (``depth_tolerance``, relative) and the view's colour there is within
+    ``photo_tolerance`` (log-RGB norm, images blurred by ``blur``) of the median colour over the views
+    that pass the depth test (:func:`cross_view_agreement`).
+    """
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+    depth_tolerance = _positive(depth_tolerance, "depth_tolerance")
+    photo_tolerance = _positive(photo_tolerance, "photo_tolerance")
+    if not is_real(blur) or not 0 <= blur < np.inf:
+        raise ValueError(f"blur must be a finite number >= 0, got {blur!r}")
+    flat = np.full((len(ordered), len(points)), -1, dtype=np.int64)
+    colour = np.full((len(ordered), len(points), 3), np.nan)
+    for i, view in enumerate(ordered):
+        q = quantities[view.stem]
+        seen, index = _sees(view, q, points, depth_tolerance)
+        flat[i, seen] = index[seen]
+        colour[i, seen] = log_image(view, q.valid, blur=blur).reshape(-1, 3)[index[seen]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: points nobody sees
+        median = np.nanmedian(colour, axis=0)
+    close = np.linalg.norm(colour - median, axis=2) < photo_tolerance  # NaN colour (unseen) compares False
+    return np.where(close, flat, -1)
+
+
 @dataclass(frozen=True)
 class Agreement:
     """How often the views give one surface point the same binary label.
@@ -334,36 +365,110 @@ def cross_view_agreement(
     Agreement
     """
     ordered = _check_views(views, quantities)
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"points must have shape (N, 3), got {points.shape}")
-    depth_tolerance = _positive(depth_tolerance, "depth_tolerance")
-    photo_tolerance = _positive(photo_tolerance, "photo_tolerance")
-    n, m = len(points), len(ordered)
-    read = np.full((m, n), -1, dtype=np.int8)
-    colour = np.full((m, n, 3), np.nan)
-    for i, view in enumerate(ordered):
+    for view in ordered:
         if view.stem not in labels:
             raise ValueError(f"labels: no labelling for view {view.stem!r}")
+        if np.shape(labels[view.stem]) != view.shape:
+            raise ValueError(f"labels[{view.stem!r}] has shape {np.shape(labels[view.stem])}, the view is {view.shape}")
+    flat = _seen_pixels(ordered, quantities, points, depth_tolerance, photo_tolerance, blur)
+    read = np.full(flat.shape, -1, dtype=np.int8)
+    for i, view in enumerate(ordered):
         label = np.asarray(labels[view.stem])
-        if label.shape != view.shape:
-            raise ValueError(f"labels[{view.stem!r}] has shape {label.shape}, the view is {view.shape}")
-        q = quantities[view.stem]
-        seen, flat = _sees(view, q, points, depth_tolerance)
         if label.dtype == bool:
             code = label.astype(np.int8)
         else:
             code = np.select([label == SHADOW_LABELS["lit"], label == SHADOW_LABELS["shadow"]], [1, 0], -1)
-        read[i, seen] = code.ravel()[flat[seen]]
-        colour[i, seen] = log_image(view, q.valid, blur=blur).reshape(-1, 3)[flat[seen]]
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns: points nobody sees
-        median = np.nanmedian(colour, axis=0)
-    close = np.linalg.norm(colour - median, axis=2) < photo_tolerance
-    read = np.where(close, read, -1)  # NaN colour (unseen) compares False
+        seen = flat[i] >= 0
+        read[i, seen] = code.ravel()[flat[i, seen]]
     count = (read >= 0).sum(axis=0)
     high = np.where(read >= 0, read, 0).sum(axis=0)
     seen_twice = count >= 2
     same = (high == 0) | (high == count)
     total = int(seen_twice.sum())
-    return Agreement(fraction=float(same[seen_twice].mean()) if total else None, points=total, points_tested=n)
+    return Agreement(fraction=float(same[seen_twice].mean()) if total else None, points=total,
+                     points_tested=flat.shape[1])
+
+
+@dataclass(frozen=True)
+class ReflectanceSpread:
+    """How much the views disagree on the reflectance of one surface point.
+
+    Parameters
+    ----------
+    median : (3,) tuple of float or None
+        Per channel (R, G, B), the median over the (point, view) readings of
+        ``|R_view / R_median - 1|``, where ``R_median`` is the point's median reflectance over the
+        views that see it; points seen by two or more views only. None when no point is seen twice.
+    p90 : (3,) tuple of float or None
+        The same readings' 90th percentile.
+    points : int
+        Points seen by two or more views (with a positive reflectance in each).
+    points_tested : int
+        Points projected.
+    """
+
+    median: tuple[float, float, float] | None
+    p90: tuple[float, float, float] | None
+    points: int
+    points_tested: int
+
+
+def cross_view_reflectance_spread(
+    views: Sequence[View],
+    quantities: Mapping[str, PixelQuantities],
+    reflectance: Mapping[str, np.ndarray],
+    points: np.ndarray,
+    *,
+    depth_tolerance: float = 0.02,
+    photo_tolerance: float = 0.2,
+    blur: float = 1.0,
+) -> ReflectanceSpread:
+    """Spread of a surface point's reflectance over the views that see it (issue 16's measure).
+
+    A surface point has one reflectance whichever photo sees it; the decomposition of each photo
+    gives its own. Views see a point as in :func:`cross_view_agreement` (depth test, colour close to
+    the views' median). Readings with a zero or non-finite reflectance in some channel (sky, no
+    estimate) are left out.
+
+    Parameters
+    ----------
+    views : sequence of View
+    quantities : mapping of str to PixelQuantities
+    reflectance : mapping of str to (H, W, 3) array_like
+        Per view, the estimated reflectance.
+    points : (N, 3) array_like
+        World points to test, e.g. the proxy's vertices.
+    depth_tolerance, photo_tolerance, blur : float, optional
+        As :func:`cross_view_agreement`.
+
+    Returns
+    -------
+    ReflectanceSpread
+    """
+    ordered = _check_views(views, quantities)
+    for view in ordered:
+        if view.stem not in reflectance:
+            raise ValueError(f"reflectance: no array for view {view.stem!r}")
+        if np.shape(reflectance[view.stem]) != (*view.shape, 3):
+            raise ValueError(f"reflectance[{view.stem!r}] has shape {np.shape(reflectance[view.stem])}, "
+                             f"expected {(*view.shape, 3)}")
+    flat = _seen_pixels(ordered, quantities, points, depth_tolerance, photo_tolerance, blur)
+    read = np.full((*flat.shape, 3), np.nan)
+    for i, view in enumerate(ordered):
+        values = np.asarray(reflectance[view.stem], dtype=np.float64).reshape(-1, 3)
+        seen = flat[i] >= 0
+        value = values[flat[i, seen]]
+        usable = (np.isfinite(value) & (value > 0)).all(axis=1)
+        read[i, np.flatnonzero(seen)[usable]] = value[usable]
+    twice = np.isfinite(read[..., 0]).sum(axis=0) >= 2
+    read = read[:, twice]
+    if not twice.any():
+        return ReflectanceSpread(median=None, p90=None, points=0, points_tested=flat.shape[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        median = np.nanmedian(read, axis=0)
+    deviation = np.abs(read / median - 1.0)
+    deviation = deviation[np.isfinite(deviation[..., 0])]
+    return ReflectanceSpread(median=tuple(float(x) for x in np.median(deviation, axis=0)),
+                             p90=tuple(float(x) for x in np.percentile(deviation, 90, axis=0)),
+                             points=int(twice.sum()), points_tested=flat.shape[1])

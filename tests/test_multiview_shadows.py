@@ -17,6 +17,7 @@ from mvintrinsic.camera import Camera
 from mvintrinsic.correspondence import (
     Correspondences,
     cross_view_agreement,
+    cross_view_reflectance_spread,
     find_correspondences,
     fuse_views,
 )
@@ -333,6 +334,28 @@ def test_cross_view_agreement(two_views):
     codes["b"] = np.full(views[1].shape, SHADOW_LABELS["undecided"], np.uint8)  # undecided is not read
     assert cross_view_agreement(views, quantities, codes, points).fraction is None
 
+
+
+def test_cross_view_reflectance_spread(two_views):
+    views, quantities = two_views
+    points = np.stack(np.meshgrid(np.linspace(-1, 1, 30), np.linspace(-1, 1, 30), [0.0]), -1).reshape(-1, 3)
+    one = {v.stem: np.full((*v.shape, 3), 0.4) for v in views}
+    same = cross_view_reflectance_spread(views, quantities, one, points)
+    assert same.median == (0.0, 0.0, 0.0) and same.points > 0.8 * len(points)
+    # b reads 1.2 times a in the red channel: the two-view median is their mean, 1.1 * 0.4, so each
+    # reading is 0.1 / 1.1 from it; green and blue agree.
+    apart = dict(one, b=one["b"] * np.array([1.2, 1.0, 1.0]))
+    spread = cross_view_reflectance_spread(views, quantities, apart, points)
+    np.testing.assert_allclose(spread.median, [0.1 / 1.1, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(spread.p90, [0.1 / 1.1, 0.0, 0.0], atol=1e-12)
+    # A view without reflectance there (zeros: sky, no estimate) is not read: no point is seen twice.
+    none = dict(one, b=np.zeros_like(one["b"]))
+    empty = cross_view_reflectance_spread(views, quantities, none, points)
+    assert empty.median is None and empty.points == 0
+    with pytest.raises(ValueError, match="reflectance"):
+        cross_view_reflectance_spread(views, quantities, {"a": one["a"]}, points)
+    with pytest.raises(ValueError, match="points"):
+        cross_view_reflectance_spread(views, quantities, one, points[:, :2])
 
 def test_consensus_takes_the_majority_of_consistent_views():
     # Three 1x4 views that see the same four points in the same pixels; view "b" alone calls the

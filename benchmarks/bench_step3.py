@@ -2,7 +2,7 @@
 
     python benchmarks/bench_step3.py [--smoke] [--out benchmarks/results/step3.json]
                                      [--history benchmarks/results/accuracy_history/step3.json]
-                                     [--timing SCENE]
+                                     [--timing SCENE] [--scene NAME ...]
 
 For each scene of ``bench_step1_accuracy.py`` (the demo, ``../shared/datasets/dev_courtyard`` and,
 when rendered, courtyard seed 1 and street seed 0), with the scene's own MVS-like proxy, the
@@ -11,6 +11,8 @@ Retinex baseline (``benchmarks/baselines``) are scored by ``mvintrinsic.evaluati
 (LMSE of reflectance and shading, BER of the shadow labels), mean over views. ``--timing SCENE``
 decomposes SCENE at its full size (1000x750 for ``../data/courtyard_1000``) and reports the
 seconds per view of segmentation, shadow MRF and matting. ``--smoke`` runs the demo only.
+``--scene NAME`` (repeatable) adds ``../data/NAME`` (e.g. street_s2, demo_480 and street_sky, issue
+16's scenes).
 """
 
 from __future__ import annotations
@@ -23,7 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_step1_accuracy import scenes
+from bench_step1_accuracy import ROOT, scenes
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
@@ -49,12 +51,18 @@ def main() -> None:
     parser.add_argument("--out", type=Path, default=None)
     parser.add_argument("--history", type=Path, default=None, help="accuracy-history point (Step-3 scores)")
     parser.add_argument("--timing", type=Path, default=None, help="scene folder for the seconds per view")
+    parser.add_argument("--scene", action="append", default=[], help="also ../data/NAME (repeatable)")
     args = parser.parse_args()
     report = {"benchmark": "step3", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "config": Config().to_dict(), "scenes": {}}
     chosen = scenes(False)
     if args.smoke:
         chosen = {"demo": chosen["demo"]}
+    for name in args.scene:
+        folder = ROOT / "data" / name
+        if not (folder / "scene.json").is_file():
+            parser.error(f"--scene {name}: no scene.json in {folder}")
+        chosen[name] = folder
     for name, folder in chosen.items():
         scene = load_scene(folder)
         entry = {}

@@ -7,8 +7,10 @@ This module does the simple, documented transfer used until Step 3's image-guide
 
 * a pixel whose centre ray hits the proxy takes the barycentric interpolation of the hit
   triangle's vertex values (one primary ray per pixel, Embree);
-* a valid pixel whose ray misses the proxy and whose direction is sky in the environment map is
-  sky: it carries no shading;
+* a valid pixel whose ray misses the proxy, whose direction is sky in the environment map and
+  whose colour is close to the sky's there (the fitted sky model's or the environment map's
+  radiance; :attr:`~mvintrinsic.raytrace.Step1Config.sky_colour_tolerance`) is sky: it carries no
+  shading;
 * a valid pixel whose ray misses the proxy but does not see the sky (geometry the proxy lost,
   typically foliage) takes the values of the nearest covered pixel (Euclidean distance in the
   image), flagged in :attr:`PixelQuantities.filled`.
@@ -132,7 +134,12 @@ def pixel_quantities(view: View, step1_result: Step1Result, tracer: Tracer, *, s
     uncovered = view.mask & ~covered
     sky_mask = np.zeros((h, w), dtype=bool)
     if uncovered.any():
-        sky_mask[uncovered] = step1_result.environment.is_sky(rays.reshape(h, w, 3)[uncovered])
+        directions = rays.reshape(h, w, 3)[uncovered]
+        sky = step1_result.environment.is_sky(directions)
+        tolerance = step1_result.config.sky_colour_tolerance
+        if tolerance is not None and sky.any():
+            sky[sky] = _looks_like_sky(np.asarray(view.image)[uncovered][sky], directions[sky], step1_result, tolerance)
+        sky_mask[uncovered] = sky
     filled = uncovered & ~sky_mask
     valid = view.mask & ~sky_mask
     if filled.any():
@@ -158,6 +165,18 @@ def pixel_quantities(view: View, step1_result: Step1Result, tracer: Tracer, *, s
         filled=filled,
         valid=valid,
     )
+
+
+def _looks_like_sky(colours: np.ndarray, directions: np.ndarray, step1_result: Step1Result,
+                    tolerance: float) -> np.ndarray:
+    """Whether pixel ``colours (N, 3)`` are within ``tolerance`` (log-RGB norm) of the fitted sky
+    model's or the environment map's radiance in ``directions (N, 3)``: ``(N,)`` bool."""
+    log_colour = np.log(np.maximum(np.asarray(colours, dtype=np.float64), 1e-6))
+    close = np.zeros(len(colours), dtype=bool)
+    for reference in (step1_result.sky_model.radiance(directions), step1_result.environment.lookup(directions)):
+        log_reference = np.log(np.maximum(np.asarray(reference, dtype=np.float64), 1e-6))
+        close |= np.linalg.norm(log_colour - log_reference, axis=1) < tolerance
+    return close
 
 
 def nearest_fill(values: np.ndarray, known: np.ndarray) -> np.ndarray:

@@ -431,6 +431,17 @@ class Step1Config:
         Environment-map, sky-detector and sky-fit options.
     batch_rays : int
         Rays per Embree call.
+    sky_colour_tolerance : float or None
+        Used when the quantities are carried to the pixels (:func:`mvintrinsic.pixels.pixel_quantities`):
+        a pixel whose ray misses the proxy is sky only when its direction is sky in the environment
+        map *and* its colour is within this distance (norm of the log-RGB difference) of the fitted
+        sky model's or the environment map's radiance in that direction; otherwise it is a surface
+        the proxy lost (``filled``). ``None``: the direction alone. Not in the paper. The
+        environment map's sky texels are coarse, so a tree crown or a pole against the sky, missing
+        from an MVS proxy, was taken for sky and got no layers: 0.4-1.8% of the scored pixels of the
+        synthetic scenes, 11-23% of Step 3's reflectance LMSE. 0.5 (about 65% per channel) keeps
+        98.5-98.8% of them as surfaces and loses 0.5-0.6% of the true sky (courtyard_s1, demo_480;
+        ``docs/step1.md``).
     """
 
     n_rays: int = 64
@@ -442,8 +453,12 @@ class Step1Config:
     depth_tolerance: float = 0.02
     sky: SkyConfig = field(default_factory=SkyConfig)
     batch_rays: int = 1 << 21
+    sky_colour_tolerance: float | None = 0.5
 
     def __post_init__(self) -> None:
+        if self.sky_colour_tolerance is not None and (
+                not is_real(self.sky_colour_tolerance) or not 0 < self.sky_colour_tolerance < np.inf):
+            raise ValueError(f"sky_colour_tolerance must be a finite number > 0 or None, got {self.sky_colour_tolerance!r}")
         object.__setattr__(self, "indirect_attenuation",
                            _attenuation_mode(self.indirect_attenuation, "indirect_attenuation"))
         if isinstance(self.n_rays, bool) or not isinstance(self.n_rays, int) or self.n_rays < 1:

@@ -125,6 +125,33 @@ def test_pixel_quantities_split_sky_covered_and_filled(demo_scene):
         np.testing.assert_allclose(q.cosine[q.valid], np.maximum(cos[q.valid], 0), atol=1e-6)
 
 
+
+def test_a_surface_against_the_sky_that_the_proxy_lost_is_not_sky(demo_scene):
+    # Pixels whose rays miss the proxy toward the sky but whose colour is not the sky's (a tree
+    # crown the MVS proxy lost) are surfaces ("filled"), not sky (Step1Config.sky_colour_tolerance).
+    from mvintrinsic.pixels import pixel_quantities
+
+    tracer = Tracer(demo_scene.proxy)
+    s1 = step1(demo_scene, tracer=tracer, rng=0)
+    view = demo_scene.views[0]
+    before = pixel_quantities(view, s1, tracer, sun_direction=demo_scene.sun.direction)
+    rows, cols = np.nonzero(before.sky_mask)
+    painted = np.zeros(view.shape, dtype=bool)
+    painted[rows[:300], cols[:300]] = True
+    image = view.image.copy()
+    image[painted] = (0.03, 0.06, 0.015)  # dark foliage green
+    crown = replace(view, image=image)
+    after = pixel_quantities(crown, s1, tracer, sun_direction=demo_scene.sun.direction)
+    assert after.filled[painted].all() and after.valid[painted].all() and not after.sky_mask[painted].any()
+    np.testing.assert_array_equal(after.sky_mask[~painted], before.sky_mask[~painted])
+    assert before.sky_mask.sum() - after.sky_mask.sum() == painted.sum()
+    # The direction alone (the behaviour before the colour test) keeps them sky.
+    direction_only = replace(s1, config=Step1Config(sky_colour_tolerance=None))
+    old = pixel_quantities(crown, direction_only, tracer, sun_direction=demo_scene.sun.direction)
+    assert old.sky_mask[painted].all()
+    with pytest.raises(ValueError, match="sky_colour_tolerance"):
+        Step1Config(sky_colour_tolerance=0.0)
+
 def flat_scene(scene: Scene) -> Scene:
     """The scene with every pixel that sees the proxy set to one grey: no shadow edge anywhere."""
     tracer = Tracer(scene.proxy)

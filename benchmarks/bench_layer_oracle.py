@@ -4,7 +4,7 @@
                                             [--out benchmarks/results/layer_oracle.json]
 
 For each scene (``DIR/NAME``, rendered by ``mvintrinsic synth``; ``demo`` is the embedded demo)
-the default decomposition (Steps 1-3, the scene's MVS-like proxy) is scored by
+the decomposition up to Step 3 (``Config(steps=3)``, the scene's MVS-like proxy) is scored by
 ``mvintrinsic.evaluation.evaluate`` (reflectance and shading LMSE, mean over views), then again
 with the reflectance recomputed by Eq. 2, ``R = I / (v S_sun k_sun + S_env')``, after replacing:
 
@@ -75,7 +75,7 @@ def _replaced(result, images: dict, env: dict, sun_scale, visibility: dict | Non
 def oracle_scene(folder: Path) -> dict:
     scene = load_scene(folder)
     tracer = Tracer(scene.proxy)
-    result = decompose(scene, tracer=tracer)
+    result = decompose(scene, config=Config(steps=3), tracer=tracer)
     # The same Step 1 as decompose's (seeded): the proxy depth of every pixel, for the spread.
     quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
     truth = read_ground_truth(folder, views=list(scene.stems))

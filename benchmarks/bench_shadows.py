@@ -18,7 +18,8 @@ views as ``mvintrinsic.evaluation.evaluate`` scores them:
   photo shows something the proxy lacks do not count), the share with one label in all of them
   (``mvintrinsic.correspondence.cross_view_agreement``); ``agreement_truth`` is the same measure
   on the true labels, the ceiling set by pixel quantisation and proxy error;
-* ``lmse_reflectance``, ``lmse_shading``: Grosse et al.'s LMSE of the final layers;
+* ``lmse_reflectance``, ``lmse_shading``: Grosse et al.'s LMSE of Step 3's layers (``steps=3``: the
+  labelling's own; Step 4 is measured by ``bench_step4.py``);
 * ``consensus_passes``: the multi-view labels alone (no matting) with 0-3 passes of the
   cross-view consensus: BER and agreement;
 * ``--agreement`` alone: the agreement of the true, paper and multi-view labels as above
@@ -140,7 +141,7 @@ def run_scene(folder: Path, multiview: MultiViewShadowConfig) -> dict:
     entry["agreement_truth"] = cross_view_agreement(scene.views, quantities, true_labels, points).fraction
     figure = {"image": scene.views[0].image, "truth": truth[scene.views[0].stem].sun_visibility}
     for method in METHODS:
-        config = Config(shadow=ShadowConfig(method=method), multiview=multiview)
+        config = Config(shadow=ShadowConfig(method=method), multiview=multiview, steps=3)
         start = time.perf_counter()
         result = decompose(scene, config=config)
         sun_radiance = result.lighting.sun_radiance  # Step 2's, the same for both methods
@@ -258,7 +259,7 @@ def agreement_scene(folder: Path, multiview: MultiViewShadowConfig) -> dict:
     labellings = {"truth": {s: np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
                             for s, lit in true_lit.items()}}
     for method in METHODS:
-        result = decompose(scene, config=Config(shadow=ShadowConfig(method=method), multiview=multiview),
+        result = decompose(scene, config=Config(shadow=ShadowConfig(method=method), multiview=multiview, steps=3),
                            tracer=tracer)
         labellings[method] = {s: layers.shadow_labels for s, layers in result.layers.items()}
     out = {}

@@ -7,7 +7,8 @@ demo
     its summary, L_sun and timings, write the result folder, a side-by-side PNG per view
     (estimate above, ground truth below), ground-truth previews, and the scores against gt/.
 decompose SCENE OUT
-    Decompose a scene folder (Steps 1-3) and write the result folder of ``docs/formats.md``.
+    Decompose a scene folder (Steps 1-4; ``--steps 3`` stops before Step 4) and write the result
+    folder of ``docs/formats.md``.
 info SCENE
     Load a scene folder (``docs/formats.md``), validate it and print a summary: views, cameras,
     image statistics, proxy, sun, and which ground-truth layers are present. ``--json`` prints
@@ -132,6 +133,11 @@ def demo_scene_path() -> Path:
 def _print_decomposition(result, scene: Scene) -> None:
     sun = result.lighting.sun_radiance
     sky = result.lighting.sky
+    config = result.config or {}
+    steps = config.get("steps")
+    if steps is not None:
+        step4 = f"; Step 4: {config.get('env_refine', {}).get('method')}" if steps == 4 else ""
+        print(f"steps        1-{steps} of the paper{step4} (docs/step4.md)")
     print(f"L_sun        {np.round(sun, 4).tolist()} (shading units)")
     if sky is not None:
         print(f"sky          {sky.model}, turbidity {sky.turbidity:.2f}, scale {np.round(sky.scale, 4).tolist()}")
@@ -206,14 +212,16 @@ def _read_config(path: Path | None):
 
 
 def _cmd_decompose(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
     from .io import save_decomposition
     from .pipeline import decompose
 
     config = _read_config(args.config)
     if args.allow_missing_sun:
-        from dataclasses import replace
-
         config = replace(config, allow_missing_sun=True)
+    if args.steps is not None:
+        config = replace(config, steps=args.steps)
     scene = load_scene(args.scene, max_size=args.max_size, views=args.views or None, progress=not args.quiet)
     result = decompose(scene, config=config, progress=not args.quiet)
     folder = save_decomposition(result, args.out, scene=scene, overwrite=args.overwrite)
@@ -412,6 +420,8 @@ def build_parser() -> argparse.ArgumentParser:
                      help="JSON or TOML file with (part of) the configuration, e.g. {\"sun\": {\"walk\": 20}}")
     dec.add_argument("--max-size", type=int, default=None, help="downscale images to this longer side")
     dec.add_argument("--views", nargs="+", default=None, metavar="STEM", help="decompose only these views")
+    dec.add_argument("--steps", type=int, choices=(2, 3, 4), default=None,
+                     help="last step of the paper to run (default 4; overrides --config)")
     dec.add_argument("--allow-missing-sun", action="store_true",
                      help="if no light/shadow pair is found, use L_sun = 0 instead of failing")
     dec.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT")

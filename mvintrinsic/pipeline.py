@@ -3,10 +3,12 @@
 ``decompose(scene)`` runs what is implemented so far: Step 1 (Sec. 4: environment map, sky model,
 ``S_sky``, ``S_ind`` and ``~v`` at the proxy vertices), Step 2 (Sec. 5: ``L_sun`` from
 light/shadow pairs) and Step 3 (Sec. 6): shadow labels, then per view the per-pixel layers by
-matting (Eq. 17). The labels come by default from all views at once at pixel resolution
-(:mod:`mvintrinsic.multiview_shadows`, beyond the paper); ``Config(shadow=ShadowConfig(method=
-"paper"))`` runs the paper's per-view labelling instead (a colour segmentation and the MRF of
-Eq. 7, :mod:`mvintrinsic.shadow_mrf`). ``Config(steps=2)`` stops after Step 2 with
+matting (Eq. 17); Step 4 (Sec. 7, :mod:`mvintrinsic.env_refine`): by default one reflectance per
+surface point across the views (beyond the paper), or the paper's ``S_env`` offsets. The labels
+come by default from all views at once at pixel resolution (:mod:`mvintrinsic.multiview_shadows`,
+beyond the paper); ``Config(shadow=ShadowConfig(method="paper"))`` runs the paper's per-view
+labelling instead (a colour segmentation and the MRF of Eq. 7, :mod:`mvintrinsic.shadow_mrf`).
+``Config(steps=3)`` stops before Step 4, ``Config(steps=2)`` after Step 2 with
 ``R = I / (S_env + ~v S_sun)`` (Eq. 2 with the proxy visibility). Every stage is also a public
 function, so a pipeline can be composed by hand::
 
@@ -17,6 +19,7 @@ function, so a pipeline can be composed by hand::
     calibration = pipeline.calibrate(scene, quantities)
     layers = {v.stem: pipeline.step2_layers(v, quantities[v.stem], calibration.sun_radiance) for v in scene.views}
     step3 = pipeline.step3(scene, quantities, calibration.sun_radiance)        # all views
+    step4 = pipeline.step4(scene, quantities, {stem: v.layers for stem, v in step3[0].items()})
     paper = pipeline.step3_view(scene.views[0], quantities[scene.views[0].stem], calibration.sun_radiance,
                                 config=Config(shadow=ShadowConfig(method="paper")))
 
@@ -36,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from .correspondence import Correspondences
+from .env_refine import EnvRefineConfig, Step4Result, refine
 from .matting import MattingConfig, intrinsic_layers
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
@@ -47,7 +52,8 @@ from .shadow_mrf import ShadowConfig, ShadowLabels, label_shadows
 from .skymodel import SkyConfig
 from .sun_calibration import SunCalibration, SunConfig, calibrate_sun, find_sun_pairs
 
-__all__ = ["Config", "Step3View", "calibrate", "carry_to_pixels", "decompose", "step2_layers", "step3", "step3_view"]
+__all__ = ["Config", "Step3View", "calibrate", "carry_to_pixels", "decompose", "step2_layers", "step3", "step3_view",
+           "step4"]
 
 logger = logging.getLogger(__name__)
 
@@ -69,8 +75,12 @@ class Config:
         The multi-view, pixel-level labelling (``shadow.method="multiview"``, the default).
     matting : MattingConfig
         Per-pixel visibility and shading (Sec. 6.2).
-    steps : {2, 3}
-        Last step run: 2 gives the Step-2 layers (proxy visibility), 3 (default) the Step-3 layers.
+    env_refine : EnvRefineConfig
+        Step 4 (Sec. 7): the multi-view reflectance fusion (default) or the paper's ``S_env``
+        offsets (:mod:`mvintrinsic.env_refine`).
+    steps : {2, 3, 4}
+        Last step run: 2 gives the Step-2 layers (proxy visibility), 3 the Step-3 layers, 4
+        (default) the Step-4 layers.
     allow_missing_sun : bool
         When no light/shadow pair survives: False raises
         :class:`~mvintrinsic.sun_calibration.SunCalibrationError`; True uses ``L_sun = 0`` (all
@@ -85,7 +95,8 @@ class Config:
     shadow: ShadowConfig = field(default_factory=ShadowConfig)
     multiview: MultiViewShadowConfig = field(default_factory=MultiViewShadowConfig)
     matting: MattingConfig = field(default_factory=MattingConfig)
-    steps: int = 3
+    env_refine: EnvRefineConfig = field(default_factory=EnvRefineConfig)
+    steps: int = 4
     allow_missing_sun: bool = False
     seed: int = 0
 
@@ -93,11 +104,12 @@ class Config:
         if not isinstance(self.step1, Step1Config):
             raise TypeError(f"step1 must be a Step1Config, got {type(self.step1).__name__}")
         for name, kind in (("sun", SunConfig), ("segmentation", SegmentationConfig), ("shadow", ShadowConfig),
-                           ("multiview", MultiViewShadowConfig), ("matting", MattingConfig)):
+                           ("multiview", MultiViewShadowConfig), ("matting", MattingConfig),
+                           ("env_refine", EnvRefineConfig)):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
-        if self.steps not in (2, 3) or isinstance(self.steps, bool):
-            raise ValueError(f"steps must be 2 or 3, got {self.steps!r}")
+        if self.steps not in (2, 3, 4) or isinstance(self.steps, bool):
+            raise ValueError(f"steps must be 2, 3 or 4, got {self.steps!r}")
         if not isinstance(self.allow_missing_sun, bool):
             raise TypeError(f"allow_missing_sun must be a bool, got {self.allow_missing_sun!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
@@ -117,7 +129,8 @@ class Config:
 
 
 _NESTED = {"step1": Step1Config, "sun": SunConfig, "sky": SkyConfig, "segmentation": SegmentationConfig,
-           "shadow": ShadowConfig, "multiview": MultiViewShadowConfig, "matting": MattingConfig}
+           "shadow": ShadowConfig, "multiview": MultiViewShadowConfig, "matting": MattingConfig,
+           "env_refine": EnvRefineConfig}
 
 
 def _from_dict(kind: type, data: Mapping[str, Any], where: str) -> Any:
@@ -287,6 +300,14 @@ def step3(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance:
         Seconds summed over views: ``shadow_labels`` and its parts ``shadow_labels.<part>``
         (multi-view) or ``shadow_mrf`` (paper), ``segmentation`` and ``matting``.
     """
+    views, timings, _ = _step3(scene, quantities, sun_radiance, config=config, progress=progress)
+    return views, timings
+
+
+def _step3(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance: np.ndarray, *,
+           config: Config | None, progress: bool
+           ) -> tuple[dict[str, Step3View], dict[str, float], MultiViewShadowLabels | None]:
+    """:func:`step3`, and the multi-view labelling (None with the paper's) for Step 4 to reuse."""
     from tqdm.auto import tqdm
 
     config = config or Config()
@@ -305,12 +326,36 @@ def step3(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance:
         views[view.stem] = result
         for name, seconds in result.timings.items():
             timings[name] = timings.get(name, 0.0) + seconds
-    return views, timings
+    return views, timings, shared
+
+
+def step4(scene: Scene, quantities: Mapping[str, PixelQuantities], layers: Mapping[str, IntrinsicLayers], *,
+          correspondences: Correspondences | None = None, config: Config | None = None) -> Step4Result:
+    """Step 4 (Sec. 7) on every view: :func:`mvintrinsic.env_refine.refine` with ``config.env_refine``.
+
+    Parameters
+    ----------
+    scene : Scene
+    quantities : mapping of str to PixelQuantities
+        Per view (:func:`carry_to_pixels`).
+    layers : mapping of str to IntrinsicLayers
+        Step 3's layers per view (``{stem: v.layers for stem, v in step3(...)[0].items()}``).
+    correspondences : Correspondences, optional
+        Those of the multi-view labelling, when at hand; found from ``quantities`` otherwise.
+    config : Config, optional
+
+    Returns
+    -------
+    Step4Result
+    """
+    config = config or Config()
+    return refine(scene.views, layers, quantities=quantities, correspondences=correspondences,
+                  config=config.env_refine)
 
 
 def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
               progress: bool = False) -> Decomposition:
-    """Decompose every view of a scene into reflectance and shading layers (Steps 1-3).
+    """Decompose every view of a scene into reflectance and shading layers (Steps 1-4).
 
     Parameters
     ----------
@@ -329,7 +374,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         Per-view :class:`~mvintrinsic.results.IntrinsicLayers`, the :class:`Lighting` (sun
         radiance, fitted sky, horizon plane, environment map), seconds per stage summed over the
         views (``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
-        :func:`step3`, or ``layers`` with ``steps=2``) and ``config.to_dict()``.
+        :func:`step3`, or ``layers`` with ``steps=2``; ``step4`` and its parts ``step4.<part>``)
+        and ``config.to_dict()``.
 
     Raises
     ------
@@ -364,9 +410,18 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         timings["layers"] = time.perf_counter() - start
     else:
         logger.info("step 3 (%s labelling) over %d views", config.shadow.method, len(scene.views))
-        views, step3_timings = step3(scene, quantities, calibration.sun_radiance, config=config, progress=progress)
+        views, step3_timings, shared = _step3(scene, quantities, calibration.sun_radiance, config=config,
+                                              progress=progress)
         layers = {stem: result.layers for stem, result in views.items()}
         timings.update(step3_timings)
+        if config.steps == 4:
+            logger.info("step 4 (%s) over %d views", config.env_refine.method, len(scene.views))
+            start = time.perf_counter()
+            refined = step4(scene, quantities, layers, config=config,
+                            correspondences=None if shared is None else shared.correspondences)
+            layers = dict(refined.layers)
+            timings["step4"] = time.perf_counter() - start
+            timings.update({f"step4.{k}": v for k, v in refined.timings.items()})
 
     sky = s1.sky_model
     lighting = Lighting(

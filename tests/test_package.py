@@ -20,7 +20,7 @@ PACKAGE = Path(mvintrinsic.__file__).parent
 CORE_LAYERS = [
     "_version", "_validation", "_libusb", "camera", "scene", "results", "image_model", "skymodel", "raytrace",
     "sun_position", "pixels", "correspondence", "sun_calibration", "segmentation", "shadow_mrf", "multiview_shadows",
-    "matting", "relight", "pipeline",
+    "matting", "env_refine", "relight", "pipeline",
 ]
 EDGE = {"io", "metrics", "cli", "evaluation", "preview", "__init__"}
 

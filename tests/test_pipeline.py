@@ -13,6 +13,7 @@ import pytest
 
 from mvintrinsic import Config, Scene, View, decompose, load_decomposition, load_scene
 from mvintrinsic.cli import demo_scene_path, main
+from mvintrinsic.env_refine import EnvRefineConfig
 from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Step1Config, Tracer, depth_map, step1
 from mvintrinsic.sun_calibration import SunCalibrationError, SunConfig
@@ -106,9 +107,26 @@ def test_steps_2_stops_after_the_sun_calibration(demo_scene, demo_result):
     view = demo_scene.views[0]
     # Step 2 labels are the proxy visibility thresholded; Step 3 relabels
     assert not np.array_equal(step2.layers[view.stem].shadow_labels, demo_result.layers[view.stem].shadow_labels)
-    with pytest.raises(ValueError, match="steps must be 2 or 3"):
-        Config(steps=4)
+    with pytest.raises(ValueError, match="steps must be 2, 3 or 4"):
+        Config(steps=5)
 
+
+
+def test_step_4_runs_by_default_and_steps_3_stops_before_it(demo_scene, demo_result):
+    step3_result = decompose(demo_scene, config=Config(steps=3))
+    assert "step4" in demo_result.timings and "step4.fusion" in demo_result.timings
+    assert not any(k.startswith("step4") for k in step3_result.timings)
+    changed = 0
+    for view in demo_scene.views:
+        four, three = demo_result.layers[view.stem], step3_result.layers[view.stem]
+        # Step 4 keeps the labels and v_sun, and Eq. 1: R * S_tot reproduces the image.
+        np.testing.assert_array_equal(four.shadow_labels, three.shadow_labels)
+        np.testing.assert_array_equal(four.visibility, three.visibility)
+        np.testing.assert_allclose(four.reconstruct(), three.reconstruct(), rtol=1e-4, atol=1e-6)
+        changed += int((four.reflectance != three.reflectance).any())
+    assert changed == len(demo_scene.views)
+    paper = decompose(demo_scene, config=Config(env_refine=EnvRefineConfig(method="paper")))
+    assert "step4.offsets" in paper.timings
 
 def test_pixel_quantities_split_sky_covered_and_filled(demo_scene):
     tracer = Tracer(demo_scene.proxy)

@@ -1,0 +1,177 @@
+"""Step 4 (paper Sec. 7) against Step 3 and the colour Retinex baseline: issue 16's measures.
+
+    python benchmarks/bench_step4.py [--data DIR] --scene NAME [--scene NAME ...]
+                                     [--out benchmarks/results/step4.json] [--timing SCENE]
+    python benchmarks/bench_step4.py --smoke
+
+For each scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` is the embedded demo,
+``dev_courtyard`` the shared dataset) with its MVS-like proxy: Steps 1-3 once (``Config(steps=3)``),
+then Step 4 on Step 3's layers with each method of :mod:`mvintrinsic.env_refine` (``multiview``,
+the default, and ``paper``), and the colour Retinex baseline (``benchmarks/baselines``). Per
+variant, mean over views:
+
+* reflectance and shading LMSE (:func:`mvintrinsic.evaluation.evaluate`);
+* ``S_env`` against ``gt/env_shading`` in the umbra: median relative error and signed median, per
+  channel (:func:`mvintrinsic.evaluation.env_shading_error`, ``region="umbra"``);
+* the cross-view reflectance spread (median and 90th percentile of ``|R_view / R_median - 1|`` per
+  channel over the proxy's vertices seen by two or more views,
+  :func:`mvintrinsic.correspondence.cross_view_reflectance_spread`), and the ground truth's own;
+* ``L_sun`` over the truth per channel: Step 2's, and Eq. 5 recomputed with the variant's ``S_env``
+  (:func:`mvintrinsic.pipeline.calibrate` on the pixel quantities with ``S_sky`` and ``S_ind``
+  replaced by the layers');
+* Step 4's seconds per view (correspondences found here; ``decompose`` reuses the labelling's).
+
+``--timing SCENE`` decomposes SCENE (e.g. ``DIR/courtyard_1000``, 1000x750) with the default
+configuration and reports Step 4's seconds per view from ``decompose``'s timings. ``--smoke``
+runs the demo only (CI). Run with the package importable.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+import mvintrinsic
+from mvintrinsic import Config, decompose
+from mvintrinsic.correspondence import cross_view_reflectance_spread
+from mvintrinsic.env_refine import EnvRefineConfig
+from mvintrinsic.evaluation import (
+    env_shading_error,
+    evaluate,
+    read_ground_truth,
+    read_ground_truth_lighting,
+    umbra_mask,
+)
+from mvintrinsic.io import load_scene, save_decomposition, write_json
+from mvintrinsic.pipeline import calibrate, carry_to_pixels, step4
+from mvintrinsic.raytrace import Tracer, step1
+from mvintrinsic.sun_calibration import SunCalibrationError
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "baselines"))
+from run_retinex import retinex_decomposition  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[2]
+METHODS = ("multiview", "paper")
+
+
+def _score(folder: Path, scene, result) -> dict:
+    with tempfile.TemporaryDirectory() as tmp:
+        save_decomposition(result, Path(tmp) / "result", scene=scene)
+        mean = evaluate(folder, Path(tmp) / "result")["mean"]
+    return {"lmse_reflectance": mean["lmse_reflectance"], "lmse_shading": mean["lmse_shading"]}
+
+
+def _spread(scene, quantities, reflectance: dict) -> dict:
+    measured = cross_view_reflectance_spread(scene.views, quantities, reflectance, np.asarray(scene.proxy.vertices))
+    return {"median": measured.median, "p90": measured.p90, "points": measured.points}
+
+
+def _env(folder: Path, layers: dict, umbra) -> dict:
+    estimate = {s: layer.sky_shading.astype(np.float64) + layer.indirect_shading for s, layer in layers.items()}
+    error = env_shading_error(folder, estimate, region="umbra", umbra=umbra)
+    return {"median_rel_error": error["median_rel_error"], "median_signed_rel_error": error["median_signed_rel_error"]}
+
+
+def _lsun_ratio(scene, quantities, layers: dict, truth: np.ndarray) -> list[float] | None:
+    """Eq. 5 (Step 2's pairs and median) with S_sky and S_ind taken from the layers."""
+    fed = {s: dataclasses.replace(q, sky=layers[s].sky_shading, indirect=layers[s].indirect_shading)
+           for s, q in quantities.items()}
+    try:
+        radiance = calibrate(scene, fed).sun_radiance
+    except SunCalibrationError:  # no pair survives: reported as None
+        return None
+    return (np.asarray(radiance) / truth).tolist()
+
+
+def bench_scene(folder: Path) -> dict:
+    scene = load_scene(folder)
+    n = len(scene.views)
+    tracer = Tracer(scene.proxy)
+    base = decompose(scene, config=Config(steps=3), tracer=tracer)
+    # The same seeded Step 1 as decompose's: the per-pixel quantities Step 4 and the spread need.
+    quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
+    truth = read_ground_truth(folder, views=list(scene.stems))
+    true_sun = np.asarray(read_ground_truth_lighting(folder).sun_radiance, dtype=np.float64)
+    umbra = umbra_mask(folder, views=list(scene.stems))
+    out = {"views": n, "size": "x".join(map(str, scene.views[0].shape[::-1])),
+           "lsun_ratio_step2": (np.asarray(base.lighting.sun_radiance) / true_sun).tolist(),
+           "spread_truth": _spread(scene, quantities, {s: truth[s].reflectance for s in scene.stems})}
+    variants = {"step3": (base, None)}
+    for method in METHODS:
+        start = time.perf_counter()
+        refined = step4(scene, quantities, base.layers, config=Config(env_refine=EnvRefineConfig(method=method)))
+        seconds = (time.perf_counter() - start) / n
+        variants[f"step4_{method}"] = (dataclasses.replace(base, layers=dict(refined.layers)), seconds)
+    for name, (result, seconds) in variants.items():
+        entry = _score(folder, scene, result)
+        entry["env_umbra"] = _env(folder, result.layers, umbra)
+        entry["spread"] = _spread(scene, quantities, {s: layer.reflectance for s, layer in result.layers.items()})
+        entry["lsun_ratio_eq5"] = _lsun_ratio(scene, quantities, result.layers, true_sun)
+        if seconds is not None:
+            entry["seconds_per_view"] = seconds
+        out[name] = entry
+        print(f"{folder.name:14s} {name:16s} LMSE R {entry['lmse_reflectance']:.4f} S {entry['lmse_shading']:.4f}  "
+              f"umbra S_env {np.round(entry['env_umbra']['median_signed_rel_error'], 3)}  "
+              f"spread {np.round(entry['spread']['median'], 3)}  "
+              f"L_sun/true {np.round(entry['lsun_ratio_eq5'], 3) if entry['lsun_ratio_eq5'] else None}", flush=True)
+    out["retinex"] = _score(folder, scene, retinex_decomposition(scene))
+    print(f"{folder.name:14s} {'retinex':16s} LMSE R {out['retinex']['lmse_reflectance']:.4f} "
+          f"S {out['retinex']['lmse_shading']:.4f}  truth spread {np.round(out['spread_truth']['median'], 3)}  "
+          f"Step-2 L_sun/true {np.round(out['lsun_ratio_step2'], 3)}", flush=True)
+    return out
+
+
+def timing(folder: Path) -> dict:
+    scene = load_scene(folder)
+    result = decompose(scene)
+    n = len(scene.views)
+    parts = {k: v / n for k, v in result.timings.items() if k.startswith("step4")}
+    size = "x".join(map(str, scene.views[0].shape[::-1]))
+    print(f"{folder.name}: {size}, {n} views, Step 4 seconds per view: " +
+          ", ".join(f"{k} {v:.2f}" for k, v in parts.items()), flush=True)
+    return {"scene": folder.name, "size": size, "views": n, "seconds_per_view": parts}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
+    parser.add_argument("--scene", action="append", default=[], help="DATA/NAME, 'demo' or 'dev_courtyard' (repeatable)")
+    parser.add_argument("--smoke", action="store_true", help="the demo only")
+    parser.add_argument("--timing", type=Path, default=None, help="scene folder for Step 4's seconds per view")
+    parser.add_argument("--out", type=Path, default=None, help="JSON report")
+    args = parser.parse_args(argv)
+    from mvintrinsic.cli import demo_scene_path
+
+    names = ["demo"] if args.smoke else args.scene
+    if not names and args.timing is None:
+        parser.error("give --scene, --smoke or --timing")
+    report = {"benchmark": "step4", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
+              "python": platform.python_version(), "config": Config().env_refine.__dict__, "scenes": {}}
+    for name in names:
+        if name == "demo":
+            folder = demo_scene_path()
+        elif name == "dev_courtyard" and not (args.data / name).is_dir():
+            folder = ROOT / "shared" / "datasets" / "dev_courtyard"
+        else:
+            folder = args.data / name
+        if not (folder / "scene.json").is_file():
+            parser.error(f"--scene {name}: no scene.json in {folder}")
+        report["scenes"][name] = bench_scene(folder)
+    if args.timing is not None:
+        report["timing"] = timing(args.timing)
+    if args.out:
+        write_json(args.out, report)
+        print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

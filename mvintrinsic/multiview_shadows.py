@@ -64,9 +64,9 @@ the views are given. The per-pixel most probable visibility of the last palette 
 (:attr:`PixelShadowLabels.visibility`).
 
 Measured (``benchmarks/bench_shadows.py``, nine scenes with MVS-like proxies, 240x180 to
-1000x750, Step 1's smoothed normals): balanced error 0.074-0.150 against the paper's 0.183-0.301
-(0.37-0.53 of it), shadow recall 0.81-0.95 against 0.47-0.75, cross-view agreement 0.952-0.992
-against 0.644-0.900, and 6.5 s per 1000x750 view on 2 cores. The choices measured and not kept
+1000x750, Step 1's smoothed normals and sky test): balanced error 0.073-0.150 against the paper's
+0.192-0.340 (0.36-0.50 of it), shadow recall 0.81-0.95 against 0.39-0.77, cross-view agreement
+0.952-0.992 against 0.497-0.903, and 6.3-7.6 s per 1000x750 view on 2 cores. The choices measured and not kept
 are in ``docs/step3.md``.
 
 References

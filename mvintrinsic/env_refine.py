@@ -1,4 +1,4 @@
-"""Step 4 (paper Sec. 7): refining the environment shading and the penumbra after Step 3.
+"""Step 4 (paper Sec. 7): refining the layers after Step 3 (the reflectance across views, or S_env).
 
 After Step 3 the reflectance ``R = I / (v_sun S_sun + S_env)`` (Eq. 2) can still be wrong near
 the shadow boundaries: ``S_env = S_sky + S_ind`` and ``L_sun`` come from the incomplete proxy (paper

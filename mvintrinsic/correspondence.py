@@ -464,9 +464,7 @@ def cross_view_reflectance_spread(
     read = read[:, twice]
     if not twice.any():
         return ReflectanceSpread(median=None, p90=None, points=0, points_tested=flat.shape[1])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)
-        median = np.nanmedian(read, axis=0)
+    median = np.nanmedian(read, axis=0)  # every column holds two readings or more
     deviation = np.abs(read / median - 1.0)
     deviation = deviation[np.isfinite(deviation[..., 0])]
     return ReflectanceSpread(median=tuple(float(x) for x in np.median(deviation, axis=0)),

@@ -80,7 +80,7 @@ from scipy.sparse.linalg import spsolve
 from ._validation import describe, is_real
 from .correspondence import Correspondences, find_correspondences, fuse_views
 from .image_model import luminance
-from .pixels import SHADING_FLOOR, PixelQuantities, masked_box_mean
+from .pixels import SHADING_FLOOR, PixelQuantities, floored_shading, masked_box_mean
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import View
 
@@ -369,7 +369,7 @@ def relayer(image: np.ndarray, layers: IntrinsicLayers, *, visibility: np.ndarra
 
     ``S_tot = v_sun S_sun + S_sky + S_ind`` (Eq. 17) with ``S_sky`` and ``S_ind`` both multiplied by
     ``env_scale``; where ``S_tot`` falls below ``floor`` times its median over the layers' pixels,
-    ``S_ind`` is raised to reach it (as :func:`~mvintrinsic.pixels.layers_from_shading`), so that
+    ``S_ind`` is raised to reach it (:func:`~mvintrinsic.pixels.floored_shading`), so that
     ``R * S_tot`` reproduces the image. Pixels without layers (all-zero reflectance: sky, off the
     proxy) keep zeros. Labels and ``S_sun`` are kept.
 
@@ -400,12 +400,8 @@ def relayer(image: np.ndarray, layers: IntrinsicLayers, *, visibility: np.ndarra
     if scale.shape[:2] != layers.shape or not np.isfinite(scale).all() or (scale < 0).any():
         raise ValueError(f"env_scale must be finite, non-negative, of shape {layers.shape} (+ channels)")
     sky = layers.sky_shading * scale
-    indirect = layers.indirect_shading * scale
-    total = v[..., None] * layers.sun_shading + sky + indirect                           # Eq. 17
-    if known.any():
-        lowest = floor * float(np.median(total[known]))
-        indirect = indirect + np.where(known[..., None], np.maximum(lowest - total, 0.0), 0.0)
-        total = v[..., None] * layers.sun_shading + sky + indirect
+    indirect, total = floored_shading(sky, layers.indirect_shading * scale, v, layers.sun_shading, known,
+                                      floor=floor)                                        # Eq. 17
     reflectance = np.divide(image, total, out=np.zeros_like(image), where=known[..., None] & (total > 0))  # Eq. 2
     zero = ~known[..., None]
     return dataclasses.replace(
@@ -477,20 +473,15 @@ def fuse_reflectance(layers: Mapping[str, IntrinsicLayers], correspondences: Cor
             raise TypeError(f"layers[{stem!r}] must be IntrinsicLayers, got {describe(layer)}")
     if not is_real(weight) or not 0 <= weight < np.inf:
         raise ValueError(f"weight must be a finite number >= 0, got {weight!r}")
-    known = {stem: (layer.reflectance > 0).all(axis=-1) for stem, layer in layers.items()}
-    logs = {stem: np.where(known[stem][..., None], np.log(np.where(known[stem][..., None], layer.reflectance, 1.0)),
-                           0.0) for stem, layer in layers.items()}
-    # Sum log R and the weights separately, so that unknown partners add neither.
-    values = {stem: np.concatenate([logs[stem], known[stem][..., None].astype(np.float64)], axis=-1)
-              for stem in layers}
-    own = 1.0 / (1.0 + weight)
-    fused = fuse_views(values, correspondences, weight=weight)
+    known = {stem: (layer.reflectance > 0).all(axis=-1, keepdims=True) for stem, layer in layers.items()}
+    # Channels 0-2: k log R, channel 3: k, with k = 1 where the view has a reflectance, 0 elsewhere
+    # (log 1 = 0), so that partners without one add nothing; their ratio is the mean over the rest.
+    values = {stem: np.concatenate([np.log(np.where(known[stem], layer.reflectance, 1.0)), known[stem]], axis=-1)
+              for stem, layer in layers.items()}
     out = {}
-    for stem in layers:
-        # fuse_views divides by 1 + w n; the last channel holds (k_own + w sum k_j) / (1 + w n).
-        total = fused[stem]
-        mean_log = total[..., :3] / np.maximum(total[..., 3:], own * 1e-9)
-        out[stem] = np.where(known[stem][..., None], np.exp(mean_log), 0.0)
+    for stem, fused in fuse_views(values, correspondences, weight=weight).items():
+        mean_log = np.divide(fused[..., :3], fused[..., 3:], out=np.zeros_like(fused[..., :3]), where=known[stem])
+        out[stem] = np.where(known[stem], np.exp(mean_log), 0.0)
     return out
 
 

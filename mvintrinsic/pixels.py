@@ -35,7 +35,8 @@ from .scene import View
 #: ``R = I / S_tot`` stays finite (a pixel the proxy says receives no light at all).
 SHADING_FLOOR = 1e-3
 
-__all__ = ["SHADING_FLOOR", "PixelQuantities", "layers_from_shading", "masked_box_mean", "nearest_fill", "pixel_quantities"]
+__all__ = ["SHADING_FLOOR", "PixelQuantities", "floored_shading", "layers_from_shading", "masked_box_mean", "nearest_fill",
+           "pixel_quantities"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,6 +212,39 @@ def masked_box_mean(values: np.ndarray, mask: np.ndarray, window: int) -> np.nda
     return total / np.maximum(weights, 1e-12)[..., None]
 
 
+def floored_shading(sky: np.ndarray, indirect: np.ndarray, visibility: np.ndarray, sun: np.ndarray,
+                    valid: np.ndarray, *, floor: float = SHADING_FLOOR) -> tuple[np.ndarray, np.ndarray]:
+    """``S_tot = S_sky + S_ind + v_sun S_sun`` (Eq. 17), ``S_ind`` raised where ``S_tot`` is too low.
+
+    Where ``S_tot`` is below ``floor`` times its median over ``valid``, ``S_ind`` is raised by the
+    difference, so that ``R = I / S_tot`` stays finite and ``R * S_tot`` reproduces the image.
+
+    Parameters
+    ----------
+    sky, indirect, sun : (H, W, 3) array_like
+        ``S_sky``, ``S_ind`` and the unshadowed ``S_sun``, shading units.
+    visibility : (H, W) array_like
+        ``v_sun`` in [0, 1].
+    valid : (H, W) bool
+        Pixels with an estimate: the median is taken over them and only they are raised.
+    floor : float, optional
+
+    Returns
+    -------
+    indirect, total : (H, W, 3) float64
+        The raised ``S_ind`` and ``S_tot``.
+    """
+    sky = np.asarray(sky, dtype=np.float64)
+    indirect = np.asarray(indirect, dtype=np.float64)
+    visibility = np.asarray(visibility, dtype=np.float64)
+    total = total_shading(sky, indirect, visibility, sun)
+    if valid.any():
+        lowest = floor * float(np.median(total[valid]))
+        indirect = indirect + np.where(valid[..., None], np.maximum(lowest - total, 0.0), 0.0)
+        total = total_shading(sky, indirect, visibility, sun)
+    return indirect, total
+
+
 def layers_from_shading(view: View, valid: np.ndarray, sky: np.ndarray, indirect: np.ndarray,
                         visibility: np.ndarray, cosine: np.ndarray, sun_radiance: np.ndarray, labels: np.ndarray,
                         *, floor: float = SHADING_FLOOR) -> IntrinsicLayers:
@@ -245,11 +279,7 @@ def layers_from_shading(view: View, valid: np.ndarray, sky: np.ndarray, indirect
     indirect = np.asarray(indirect, dtype=np.float64)
     visibility = np.asarray(visibility, dtype=np.float64)
     sun = sun_shading(sun_radiance, cosine)                                              # Eq. 3
-    total = total_shading(sky, indirect, visibility, sun)                                # Eq. 17
-    if valid.any():
-        lowest = floor * float(np.median(total[valid]))
-        indirect = indirect + np.where(valid[..., None], np.maximum(lowest - total, 0.0), 0.0)
-        total = total_shading(sky, indirect, visibility, sun)
+    indirect, total = floored_shading(sky, indirect, visibility, sun, valid, floor=floor)  # Eq. 17
     reflectance = np.divide(image, total, out=np.zeros_like(image), where=valid[..., None] & (total > 0))  # Eq. 2
     zero = ~valid[..., None]
     return IntrinsicLayers(

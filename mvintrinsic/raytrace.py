@@ -51,6 +51,7 @@ __all__ = [
     "sun_visibility",
     "triangle_scene",
     "tangent_frames",
+    "vertex_normals",
     "vertex_radiance",
     "voxel_subsample",
 ]
@@ -816,6 +817,15 @@ def ray_radiance(
     return sky, indirect
 
 
+def vertex_normals(proxy: Proxy, normal_smoothing: float) -> np.ndarray:
+    """The vertex normals every shading term uses: the proxy's, smoothed by ``normal_smoothing`` metres.
+
+    :func:`smooth_normals` when ``normal_smoothing > 0``, the proxy's own normals (read-only) at 0
+    (:attr:`Step1Config.normal_smoothing`, :attr:`mvintrinsic.relight.RelightConfig.normal_smoothing`).
+    """
+    return smooth_normals(proxy, normal_smoothing) if normal_smoothing > 0 else proxy.normals
+
+
 def smooth_normals(proxy: Proxy, sigma: float) -> np.ndarray:
     """Vertex normals averaged over the mesh, about a Gaussian of ``sigma`` metres (Step 1).
 
@@ -1045,9 +1055,7 @@ def step1(
     timings["vertex_radiance"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    points, normals = scene.proxy.vertices, scene.proxy.normals
-    if config.normal_smoothing > 0:
-        normals = smooth_normals(scene.proxy, config.normal_smoothing)
+    points, normals = scene.proxy.vertices, vertex_normals(scene.proxy, config.normal_smoothing)
     timings["normals"] = time.perf_counter() - start
 
     start = time.perf_counter()

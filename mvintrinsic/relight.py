@@ -261,7 +261,7 @@ from ._validation import as_array, as_unit_vector, describe, is_real
 from .camera import Camera
 from .image_model import LUMINANCE_WEIGHTS
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, Tracer, smooth_normals, triangle_scene
+from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene, vertex_normals
 from .raytrace import sun_visibility as proxy_vertex_visibility
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene, Sun
@@ -1303,11 +1303,11 @@ def as_sun_direction(sun: object, *, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.nda
     return out
 
 
-def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int], vertex_normals: np.ndarray) -> np.ndarray:
-    """Unit normals of a view's pixels from its camera-ray ``hits``: ``vertex_normals`` (N, 3)
+def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int], normals_at_vertices: np.ndarray) -> np.ndarray:
+    """Unit normals of a view's pixels from its camera-ray ``hits``: ``normals_at_vertices`` (N, 3)
     interpolated (see :func:`receiver_normals`)."""
     covered = hits.hit.reshape(shape)
-    normals = tracer.interpolate(vertex_normals, hits).reshape(*shape, 3)
+    normals = tracer.interpolate(normals_at_vertices, hits).reshape(*shape, 3)
     length = np.linalg.norm(np.nan_to_num(normals), axis=-1)
     # Opposite vertex normals can cancel in the interpolation: take the hit's geometric normal there.
     degenerate = covered & (length < 1e-6)
@@ -1351,8 +1351,7 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
     if not is_real(normal_smoothing) or not 0.0 <= normal_smoothing < np.inf:
         raise ValueError(f"normal_smoothing must be a finite number >= 0 (metres), got {normal_smoothing!r}")
     hits, _, _ = _cast_pixels(camera, tracer)
-    vertex_normals = smooth_normals(tracer.proxy, normal_smoothing) if normal_smoothing > 0 else tracer.proxy.normals
-    return _pixel_normals(tracer, hits, camera.shape, vertex_normals)
+    return _pixel_normals(tracer, hits, camera.shape, vertex_normals(tracer.proxy, normal_smoothing))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1664,8 +1663,7 @@ class Relighter:
         timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0}
         receivers, normals, hits, known, cosine = {}, {}, {}, {}, {}
         start = time.perf_counter()
-        self._vertex_normals = (smooth_normals(tracer.proxy, config.normal_smoothing)
-                                if config.normal_smoothing > 0 else tracer.proxy.normals)
+        self._vertex_normals = vertex_normals(tracer.proxy, config.normal_smoothing)
         timings["receivers"] += time.perf_counter() - start
         reflectance, visibility, casters, lit_points = {}, {}, {}, {}
         for view in scene.views:

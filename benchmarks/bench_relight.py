@@ -1,6 +1,6 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
-    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds]
+    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -59,6 +59,10 @@ the occluder distance, and a blend with the capture visibility (shadows that per
 (:func:`bounds_scene`): the exact mesh's, the path tracer's and the best possible one
 (:func:`best_visibility`, the per-pixel least-squares visibility against the truth): how much of
 row (e)'s distance to row (c) a better caster could close, and how much is the layers'.
+
+``--receivers`` only relights the ground-truth layers with the exact mesh as the occluder but
+the rays shot from the proxy's receiver points (:func:`receivers_scene`): what no caster built on
+this proxy's receivers can exceed, i.e. how much of row (d)'s distance to row (c) is the caster's.
 
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
@@ -552,10 +556,67 @@ def bounds_scene(folder: Path) -> dict:
     return out
 
 
-def bounds_summary(bounds: dict) -> dict:
+RECEIVER_ROWS = ("input", "gt_mesh", "gt_caster", "exact_at_proxy", "exact_at_proxy_far", "exact_at_proxy_far_and_caster")
+
+
+def receivers_scene(folder: Path) -> dict:
+    """Whether any caster can bring row (d) near row (c) from the proxy's receiver points.
+
+    Row (d)'s shadow rays start at the proxy's point of every pixel (:attr:`Relighter.receivers`);
+    row (c)'s at the exact mesh's. Here the occluder is made perfect, the exact mesh itself, and
+    the rays still start at the proxy's receivers (offset ``RelightConfig.ray_offset`` toward the
+    sun, the proxy's smoothed normals for the attached shadow, blurred as row (d)), on the
+    ground-truth layers with ``light_dropped=False`` as row (c):
+
+    * ``exact_at_proxy``: every hit of the exact mesh shades;
+    * ``exact_at_proxy_far``: hits nearer than ``RelightConfig.completion_distance`` are ignored
+      (the rule row (d)'s proxy completion uses: a receiver on a noisy proxy lies centimetres in
+      front of or behind the true surface, which then shades it);
+    * ``exact_at_proxy_far_and_caster``: that, or row (d)'s visibility where it is darker (our
+      caster supplies the near shadows), relit with row (d)'s relighter.
+
+    What these rows miss against row (c) no occluder can give back: it is the receivers' (and the
+    attached shadow's normals').
+    """
+    scene, tags, sky_mask = _relit_scene(folder, "--receivers")
+    stems = scene.stems
+    inputs = {v.stem: v.image for v in scene.views}
+    tracer = Tracer(scene.proxy)
+    truth = ground_truth_decomposition(folder, views=list(stems))
+    config = RelightConfig()
+    ours = Relighter(truth, scene, config=config, tracer=tracer)
+    plain = Relighter(truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+    mesh = MeshShadow(folder, scene)
+    out = {}
+    for tag, (direction, images, _) in tags.items():
+        sun = np.asarray(direction, dtype=np.float64)
+        facing = {s: ~((plain.normals[s] @ sun) <= 0.0) for s in stems}  # NaN normal: no attached shadow
+        distance = {s: mesh.caster.hit_distance(plain.receivers[s].reshape(-1, 3) + config.ray_offset * sun,
+                                                sun).reshape(plain.receivers[s].shape[:2]) for s in stems}
+
+        def blurred(lit: dict) -> dict:
+            return {s: ndimage.gaussian_filter(lit[s].astype(np.float32), config.blur, mode="nearest") for s in stems}
+
+        everything = blurred({s: ~np.isfinite(distance[s]) & facing[s] for s in stems})
+        far = blurred({s: ((distance[s] + config.ray_offset < config.completion_distance)
+                           | ~np.isfinite(distance[s])) & facing[s] for s in stems})
+        caster = ours.visibility_at(sun)
+        rows = {"input": inputs,
+                "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),
+                "gt_caster": ours.render(sun, visibility=caster),
+                "exact_at_proxy": plain.render(sun, visibility=everything),
+                "exact_at_proxy_far": plain.render(sun, visibility=far),
+                "exact_at_proxy_far_and_caster": ours.render(
+                    sun, visibility={s: np.minimum(far[s], caster[s]) for s in stems})}
+        out[tag] = {name: mean_psnr(rows[name], images, sky_mask)["mean"] for name in RECEIVER_ROWS}
+        print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in out[tag].items()), flush=True)
+    return out
+
+
+def bounds_summary(bounds: dict, rows: tuple[str, ...] = BOUND_ROWS) -> dict:
     """Mean gain over row (a) at +-15 degrees of azimuth, and the scene-suns each row beats (a) on."""
-    gains = {row: [] for row in BOUND_ROWS[1:]}
-    above = {row: 0 for row in BOUND_ROWS[1:]}
+    gains = {row: [] for row in rows[1:]}
+    above = {row: 0 for row in rows[1:]}
     count = 0
     for tags in bounds.values():
         for tag, rows in tags.items():
@@ -607,6 +668,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only compare ways of softening the new shadow on the ground-truth layers")
     parser.add_argument("--bounds", action="store_true",
                         help="only the layers (true and pipeline) relit with ideal shadows: exact, true, best")
+    parser.add_argument("--receivers", action="store_true",
+                        help="only the exact mesh as the occluder, shot from the proxy's receivers (ground-truth layers)")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
@@ -622,12 +685,15 @@ def main(argv: list[str] | None = None) -> int:
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
     studies = (("timing", "timing", time_scene), ("stride", "ray_stride", stride_scene),
-               ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene))
+               ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
+               ("receivers", "receivers", receivers_scene))
     for flag, key, study in studies:
         if getattr(args, flag):
             report[key] = {name: study(folder) for name, folder in chosen.items()}
             if key == "bounds":
                 report["bounds_summary"] = bounds_summary(report["bounds"])
+            if key == "receivers":
+                report["receivers_summary"] = bounds_summary(report["receivers"], RECEIVER_ROWS)
             if args.out:
                 write_json(args.out, report)
             return 0

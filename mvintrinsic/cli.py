@@ -151,16 +151,17 @@ DEMO_FRAMES, DEMO_SWEEP = 9, 30.0
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from .io import save_decomposition
+    from .io import check_result_folder, save_decomposition
     from .pipeline import decompose
     from .preview import write_decomposition_previews, write_scene_previews
 
     folder = demo_scene_path()
-    scene = load_scene(folder)
-    print(_format_summary(scene_summary(scene)))
     out = args.out.resolve()
     if folder.resolve() in (out, *out.parents):
         raise ValueError(f"--out {out}: refusing to write inside the demo scene")
+    check_result_folder(out / "result", scene=folder, overwrite=args.overwrite)  # before any work
+    scene = load_scene(folder)
+    print(_format_summary(scene_summary(scene)))
     result = decompose(scene, progress=sys.stderr.isatty())
     _print_decomposition(result, scene)
     save_decomposition(result, out / "result", scene=scene, overwrite=args.overwrite)
@@ -214,9 +215,10 @@ def _read_config(path: Path | None):
 def _cmd_decompose(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from .io import save_decomposition
+    from .io import check_result_folder, save_decomposition
     from .pipeline import decompose
 
+    check_result_folder(args.out, scene=args.scene, overwrite=args.overwrite)  # before any work
     config = _read_config(args.config)
     if args.allow_missing_sun:
         config = replace(config, allow_missing_sun=True)
@@ -232,7 +234,7 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
-    from .io import _prepare_result_folder, load_decomposition, write_image
+    from .io import _prepare_result_folder, check_result_folder, load_decomposition, write_image
     from .preview import tonemap
     from .relight import Relighter, as_sun_direction
     from .sun_position import azimuth_elevation
@@ -251,6 +253,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
         raise ValueError("--elevation goes with --azimuth or --sequence; --time gives the sun's position itself")
     if args.sequence is not None and (args.sequence[2] < 2 or args.sequence[2] != int(args.sequence[2])):
         raise ValueError(f"--sequence STEPS must be an integer >= 2, got {args.sequence[2]!r}")
+    check_result_folder(args.out, scene=args.scene, overwrite=args.overwrite)  # before any work
     scene = load_scene(args.scene, progress=not args.quiet)
     if by_time:
         sun = _sun_at_time(args, scene)

@@ -6,9 +6,9 @@ The layouts are the public contract of ``docs/formats.md``:
   ``proxy.ply`` (through open3d) and ``scene.json`` into a validated
   :class:`~mvintrinsic.scene.Scene`.
 * :func:`save_decomposition` / :func:`load_decomposition` write and read a result folder.
-  Every file is written atomically (temporary file in the same folder, then :func:`os.replace`),
-  never inside a scene folder, and a non-empty folder that mvintrinsic did not create is only
-  written into when ``overwrite=True``.
+  A result folder is written whole beside its place and swapped in (all or nothing), never inside
+  a scene folder, and a non-empty folder that mvintrinsic did not create is only written into
+  when ``overwrite=True``; :func:`check_result_folder` refuses a bad output before any work.
 * :func:`read_image` / :func:`write_image` read and write single images through OpenImageIO.
 
 Every malformed input raises :class:`SceneError` (a :class:`ValueError`) whose message starts with
@@ -18,11 +18,14 @@ the offending file (and field) and says what is wrong.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import datetime as _dt
+import errno
 import functools
 import json
 import math
 import os
+import shutil
 import tempfile
 import warnings
 from collections.abc import Callable, Iterable, Sequence
@@ -43,6 +46,7 @@ __all__ = [
     "IMAGE_EXTENSIONS",
     "ResultFolderError",
     "SceneError",
+    "check_result_folder",
     "load_decomposition",
     "load_scene",
     "read_colmap",
@@ -172,7 +176,8 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Write through ``write(tmp)`` to a temporary sibling of ``path``, then rename it over ``path``.
 
     The temporary file keeps ``path``'s extension (OpenImageIO chooses the format from it) and is
-    removed when anything, including KeyboardInterrupt, interrupts the write.
+    removed when anything, including KeyboardInterrupt, interrupts the write; the file gets the
+    permissions the user's umask gives new files.
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=f".tmp{path.suffix}", dir=path.parent)
@@ -180,6 +185,7 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     tmp = Path(tmp_name)
     try:
         write(tmp)
+        os.chmod(tmp, 0o666 & ~_umask())  # mkstemp's 0600 would hide results from the user's group
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -738,7 +744,53 @@ def _is_scene_folder(folder: Path) -> bool:
     return (folder / "scene.json").is_file() and (folder / "sparse").is_dir()
 
 
-def _prepare_result_folder(folder: Path, *, overwrite: bool, scene: Scene | os.PathLike | str | None) -> Path:
+def _umask() -> int:
+    """The process's file-creation mask (read by setting and restoring it)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _nearest_existing(folder: Path) -> Path:
+    for candidate in (folder, *folder.parents):
+        if candidate.exists():
+            return candidate
+    return Path(folder.anchor)
+
+
+def check_result_folder(
+    folder: os.PathLike | str,
+    *,
+    scene: Scene | os.PathLike | str | None = None,
+    overwrite: bool = False,
+) -> Path:
+    """Refuse an output folder that :func:`save_decomposition` could not or must not write.
+
+    Call it before a long computation (the CLI does) so that a bad ``OUT`` costs nothing; it
+    writes nothing.
+
+    Parameters
+    ----------
+    folder : path-like
+        The intended result folder.
+    scene : Scene or path-like, optional
+        The input scene (or its folder): the result may not be it or lie inside it.
+    overwrite : bool, optional
+        Accept a non-empty folder that mvintrinsic did not write (:data:`RESULT_MARKER` absent).
+
+    Returns
+    -------
+    pathlib.Path
+        ``folder``, resolved.
+
+    Raises
+    ------
+    ResultFolderError
+        If ``folder`` is a file, is or lies inside the scene folder (or any folder that looks
+        like a scene folder: ``scene.json`` and ``sparse/``), is a non-empty folder that
+        mvintrinsic did not write and ``overwrite`` is false, or cannot be written (the message
+        names the folder and the reason).
+    """
     folder = Path(folder).resolve()
     scene_dir = scene.source if isinstance(scene, Scene) else (None if scene is None else Path(scene))
     if scene_dir is not None:
@@ -748,17 +800,112 @@ def _prepare_result_folder(folder: Path, *, overwrite: bool, scene: Scene | os.P
     for candidate in (folder, *folder.parents):
         if _is_scene_folder(candidate):
             raise ResultFolderError(f"{folder}: refusing to write a result inside the scene folder {candidate}")
-    if folder.exists():
-        if not folder.is_dir():
-            raise ResultFolderError(f"{folder}: exists and is not a folder")
-        if any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file() and not overwrite:
-            raise ResultFolderError(
-                f"{folder}: is not empty and was not written by mvintrinsic; pass overwrite=True to write into it"
-            )
+    for candidate in (folder, *folder.parents):
+        if candidate.exists() and not candidate.is_dir():
+            raise ResultFolderError(f"{folder}: {candidate} exists and is not a folder")
+        if candidate.exists():
+            break
+    if folder.is_dir() and any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file() and not overwrite:
+        raise ResultFolderError(
+            f"{folder}: is not empty and was not written by mvintrinsic; choose another folder or pass "
+            "overwrite=True (--overwrite) to write into it"
+        )
+    # The result is written beside the folder and swapped in, or (a foreign folder) into it.
+    for where in {_nearest_existing(folder.parent), _nearest_existing(folder)}:
+        if not os.access(where, os.W_OK | os.X_OK):
+            raise ResultFolderError(f"{folder}: cannot write there ({where} is not writable)")
+    return folder
+
+
+def _prepare_result_folder(folder: Path, *, overwrite: bool, scene: Scene | os.PathLike | str | None) -> Path:
+    """:func:`check_result_folder`, then create the folder and its marker (for in-place writers)."""
+    folder = check_result_folder(folder, scene=scene, overwrite=overwrite)
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / RESULT_MARKER).is_file():
-        (folder / RESULT_MARKER).write_text("written by mvintrinsic\n")
+        _atomic_write(folder / RESULT_MARKER, lambda tmp: tmp.write_text("written by mvintrinsic\n"))
     return folder
+
+
+#: Prefix of the sibling folders a result is written into before it is swapped in.
+_PARTIAL = "partial"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
+def _remove_stale_partials(folder: Path) -> None:
+    """Delete sibling work folders (``.NAME.partial-PID-*``) left by writers that were killed."""
+    for sibling in folder.parent.glob(f".{folder.name}.{_PARTIAL}-*"):
+        pid = sibling.name[len(f".{folder.name}.{_PARTIAL}-"):].split("-", 1)[0]
+        if sibling.is_dir() and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(sibling, ignore_errors=True)
+
+
+@functools.cache
+def _renameat2():
+    """glibc's ``renameat2`` (Linux >= 3.15, glibc >= 2.28), or None."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        function = libc.renameat2
+    except (OSError, AttributeError):
+        return None
+    function.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    function.restype = ctypes.c_int
+    return function
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths in one atomic step (``RENAME_EXCHANGE``); False where the system cannot."""
+    function = _renameat2()
+    if function is None:
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if function(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    error = ctypes.get_errno()
+    if error in (errno.EINVAL, errno.ENOSYS, errno.EOPNOTSUPP):
+        return False
+    raise OSError(error, os.strerror(error), str(b))
+
+
+def _swap_in(work: Path, folder: Path) -> None:
+    """Put the complete folder ``work`` at ``folder``; a crash at any instant leaves a complete one.
+
+    An absent or empty ``folder`` is replaced by a rename. An existing result is exchanged with
+    ``work`` in one atomic step where the system offers it (Linux ``renameat2``), then deleted;
+    elsewhere it is renamed aside first, so that a crash between the two renames leaves it, whole,
+    as ``.NAME.partial-PID-*`` beside an absent ``folder``.
+    """
+    if folder.is_dir() and not any(folder.iterdir()):
+        folder.rmdir()
+    if not folder.exists():
+        os.rename(work, folder)
+        return
+    if not _exchange(work, folder):
+        aside = Path(tempfile.mkdtemp(prefix=f".{folder.name}.{_PARTIAL}-{os.getpid()}-old-", dir=folder.parent))
+        os.rename(folder, aside / "result")
+        os.rename(work, folder)
+        work = aside
+    shutil.rmtree(work, ignore_errors=True)  # now the old result
+
+
+def _result_files(result: Decomposition) -> dict[str, tuple[Callable[..., Path], np.ndarray, str]]:
+    """Relative path -> (writer, array, dtype) of every layer file of a result folder."""
+    files = {}
+    if result.lighting.envmap is not None:
+        files["envmap.exr"] = (write_image, result.lighting.envmap, "float")
+    for stem, layers in result.layers.items():
+        for name in ("reflectance", "shading", "sun_shading", "sky_shading", "indirect_shading", "visibility"):
+            files[f"views/{stem}/{name}.exr"] = (write_image, getattr(layers, name), "float")
+        files[f"views/{stem}/shadow_labels.png"] = (write_image, layers.shadow_labels, "uint8")
+    return files
 
 
 def save_decomposition(
@@ -768,17 +915,19 @@ def save_decomposition(
     overwrite: bool = False,
     scene: Scene | os.PathLike | str | None = None,
 ) -> Path:
-    """Write a decomposition as a result folder (``docs/formats.md``).
+    """Write a decomposition as a result folder (``docs/formats.md``), all or nothing.
 
     Parameters
     ----------
     result : Decomposition
         What to write.
     folder : path-like
-        Destination folder, created if needed.
+        Destination folder, created if needed (:func:`check_result_folder` says which are
+        refused).
     overwrite : bool, optional
-        Allow writing into an existing non-empty folder that mvintrinsic did not create.
-        Folders it created (they hold :data:`RESULT_MARKER`) are updated in place.
+        Allow writing into an existing non-empty folder that mvintrinsic did not create; its
+        other files are kept. Folders mvintrinsic created (they hold :data:`RESULT_MARKER`) are
+        replaced whole without it.
     scene : Scene or path-like, optional
         The input scene (or its folder): writing inside it is refused. Folders that look like a
         scene folder (``scene.json`` + ``sparse/``), or lie inside one, are refused in any case.
@@ -788,31 +937,59 @@ def save_decomposition(
     pathlib.Path
         The result folder.
 
+    Raises
+    ------
+    ResultFolderError
+        If ``folder`` may not or cannot be written (:func:`check_result_folder`).
+
     Notes
     -----
-    Each file is written atomically; ``lighting.json`` is written last, so its presence marks a
-    complete result. EXR files are 32-bit float (lossless round trip).
+    An absent, empty or mvintrinsic-written ``folder`` is written as a hidden sibling
+    (``.NAME.partial-PID-*``) and swapped in when complete (:func:`os.rename`; over an existing
+    result, Linux's atomic ``renameat2`` exchange): a crash or ``kill -9`` at any instant leaves
+    either the complete old result or the complete new one, and a later write removes the
+    sibling a killed writer left. A result of fewer views replaces a larger one whole (no stale
+    view folder). Into a foreign folder (``overwrite=True``) the files are written in place,
+    ``lighting.json`` removed first and written last. ``lighting.json`` lists every layer file
+    with its size, and :func:`load_decomposition` refuses a folder that does not match it. Every
+    file is written atomically with the user's umask; EXR files are 32-bit float (lossless round
+    trip).
     """
     if not isinstance(result, Decomposition):
         raise TypeError(f"result must be a Decomposition, got {type(result).__name__}")
-    folder = _prepare_result_folder(Path(folder), overwrite=overwrite, scene=scene)
-    if result.lighting.envmap is not None:
-        write_image(folder / "envmap.exr", result.lighting.envmap)
-    for stem, layers in result.layers.items():
-        out = folder / "views" / stem
-        write_image(out / "reflectance.exr", layers.reflectance)
-        write_image(out / "shading.exr", layers.shading)
-        write_image(out / "sun_shading.exr", layers.sun_shading)
-        write_image(out / "sky_shading.exr", layers.sky_shading)
-        write_image(out / "indirect_shading.exr", layers.indirect_shading)
-        write_image(out / "visibility.exr", layers.visibility)
-        write_image(out / "shadow_labels.png", layers.shadow_labels, dtype="uint8")
+    folder = check_result_folder(folder, scene=scene, overwrite=overwrite)
+    if folder.is_dir() and any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file():
+        folder = _prepare_result_folder(folder, overwrite=overwrite, scene=scene)
+        with contextlib.suppress(FileNotFoundError):
+            (folder / "lighting.json").unlink()  # incomplete until it is written again, last
+        _write_result(result, folder)
+        return folder
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    _remove_stale_partials(folder)
+    work = Path(tempfile.mkdtemp(prefix=f".{folder.name}.{_PARTIAL}-{os.getpid()}-", dir=folder.parent))
+    try:
+        os.chmod(work, 0o777 & ~_umask())
+        _atomic_write(work / RESULT_MARKER, lambda tmp: tmp.write_text("written by mvintrinsic\n"))
+        _write_result(result, work)
+        _swap_in(work, folder)
+    except BaseException:
+        shutil.rmtree(work, ignore_errors=True)
+        raise
+    return folder
+
+
+def _write_result(result: Decomposition, folder: Path) -> None:
+    """Every layer file, then ``lighting.json`` with the manifest of their sizes."""
+    sizes = {}
+    for relative, (writer, array, dtype) in _result_files(result).items():
+        path = writer(folder / relative, array, dtype=dtype)
+        sizes[relative] = path.stat().st_size
     lighting = result.lighting.to_dict()
     lighting.update(
-        views=list(result.stems), timings=dict(result.timings), version=result.version, config=dict(result.config)
+        views=list(result.stems), timings=dict(result.timings), version=result.version, config=dict(result.config),
+        files=sizes,
     )
     write_json(folder / "lighting.json", lighting)
-    return folder
 
 
 def _read_raw(path: Path, channels: int) -> np.ndarray:
@@ -823,6 +1000,31 @@ def _read_raw(path: Path, channels: int) -> np.ndarray:
     return data[..., 0] if channels == 1 else data
 
 
+def _check_complete(folder: Path, data: dict) -> None:
+    """Refuse a result folder that does not match its ``lighting.json`` (a mixed or partial write)."""
+    file = folder / "lighting.json"
+    views = data.get("views", [])
+    if not isinstance(views, list) or not all(isinstance(v, str) for v in views):
+        raise SceneError(file, "malformed lighting.json ('views' must be a list of view names)")
+    if (folder / "views").is_dir():
+        stale = sorted(p.name for p in (folder / "views").iterdir() if p.is_dir() and p.name not in views)
+        if stale:
+            raise SceneError(folder / "views" / stale[0], f"view folder not listed in lighting.json ({len(stale)} "
+                             "such): the result folder mixes two writes; write the result again")
+    sizes = data.get("files")
+    if sizes is None:  # written before the manifest existed
+        return
+    if not isinstance(sizes, dict):
+        raise SceneError(file, "malformed lighting.json ('files' must map file names to sizes)")
+    for relative, size in sizes.items():
+        path = folder / relative
+        if not path.is_file():
+            raise SceneError(path, "result file not found (incomplete result folder); write the result again")
+        if path.stat().st_size != size:
+            raise SceneError(path, f"{path.stat().st_size} bytes where lighting.json says {size}: the result "
+                             "folder mixes two writes; write the result again")
+
+
 def load_decomposition(folder: os.PathLike | str) -> Decomposition:
     """Read a result folder written by :func:`save_decomposition`.
 
@@ -831,7 +1033,9 @@ def load_decomposition(folder: os.PathLike | str) -> Decomposition:
     Raises
     ------
     SceneError
-        If ``lighting.json`` or a layer file is missing or malformed.
+        If ``lighting.json`` or a layer file is missing or malformed, or the folder does not match
+        ``lighting.json`` (a file of another size than it lists, a view folder it does not list):
+        the traces of an interrupted or mixed write.
     """
     folder = Path(folder)
     file = folder / "lighting.json"
@@ -853,6 +1057,7 @@ def load_decomposition(folder: os.PathLike | str) -> Decomposition:
         if isinstance(exc, SceneError):
             raise
         raise SceneError(file, f"malformed lighting.json ({exc!r})") from exc
+    _check_complete(folder, data)
     layers = {}
     for stem in data.get("views", []):
         out = folder / "views" / stem

@@ -199,10 +199,139 @@ def test_interrupted_write_leaves_no_partial_file(tmp_path, monkeypatch):
     with pytest.raises(KeyboardInterrupt):
         mio.save_decomposition(make_result(), out)
     monkeypatch.setattr(mio.os, "replace", original)
-    written = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file())
-    # The first two files are complete, nothing else exists: no temporary, no partial third file.
-    assert written == [mio.RESULT_MARKER, "envmap.exr", "views/a/reflectance.exr"]
-    assert not (out / "lighting.json").exists()
+    # All or nothing: no result folder, and no work folder or temporary file beside it.
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_interrupted_rewrite_keeps_the_old_result(tmp_path, monkeypatch):
+    out = tmp_path / "out"
+    old = make_result(stems=("a", "b", "c"))
+    mio.save_decomposition(old, out)
+    original = os.replace
+    calls = {"n": 0}
+
+    def crash_on_fifth(src, dst):
+        calls["n"] += 1
+        if calls["n"] == 5:
+            raise KeyboardInterrupt
+        original(src, dst)
+
+    monkeypatch.setattr(mio.os, "replace", crash_on_fifth)
+    with pytest.raises(KeyboardInterrupt):
+        mio.save_decomposition(make_result(stems=("a",), h=5), out)
+    monkeypatch.setattr(mio.os, "replace", original)
+    assert_same(old, mio.load_decomposition(out))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_fewer_views_replace_a_result_whole(tmp_path):
+    out = tmp_path / "out"
+    mio.save_decomposition(make_result(stems=("a", "b", "c")), out)
+    subset = make_result(stems=("b",))
+    mio.save_decomposition(subset, out)
+    assert sorted(p.name for p in (out / "views").iterdir()) == ["b"]  # no stale view folder
+    assert_same(subset, mio.load_decomposition(out))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_load_refuses_a_mixed_or_incomplete_folder(tmp_path):
+    out = mio.save_decomposition(make_result(), tmp_path / "out")
+    other = mio.save_decomposition(make_result(h=9), tmp_path / "other")
+    (out / "views" / "a" / "visibility.exr").write_bytes((other / "views" / "a" / "visibility.exr").read_bytes())
+    with pytest.raises(mio.SceneError, match=r"visibility\.exr.*mixes two writes"):
+        mio.load_decomposition(out)
+    (other / "views" / "b" / "reflectance.exr").unlink()
+    with pytest.raises(mio.SceneError, match=r"reflectance\.exr.*incomplete result folder"):
+        mio.load_decomposition(other)
+    stale = mio.save_decomposition(make_result(), tmp_path / "stale")
+    (stale / "views" / "z").mkdir()
+    with pytest.raises(mio.SceneError, match="not listed in lighting.json"):
+        mio.load_decomposition(stale)
+
+
+def test_result_files_get_the_users_umask(tmp_path):
+    previous = os.umask(0o027)
+    try:
+        out = mio.save_decomposition(make_result(), tmp_path / "out")
+    finally:
+        os.umask(previous)
+    assert (out.stat().st_mode & 0o777) == 0o750
+    for path in (out / "lighting.json", out / "views" / "a" / "reflectance.exr", out / mio.RESULT_MARKER):
+        assert (path.stat().st_mode & 0o777) == 0o640, path
+
+
+KILL_CHILD = """
+import sys
+sys.path.insert(0, {tests!r})
+from test_io import make_result
+from mvintrinsic import io as mio
+result = make_result(stems=tuple("abcdefgh"), h=120, w=160)
+print("ready", flush=True)
+mio.save_decomposition(result, {out!r})
+print("done", flush=True)
+"""
+
+
+def test_kill_9_during_a_rewrite_leaves_the_old_or_the_new_result(tmp_path):
+    """20 writers of a new result over an old one, each killed with SIGKILL at a random instant."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "out"
+    old = make_result(stems=("a", "b"), h=7, w=9)
+    new = make_result(stems=tuple("abcdefgh"), h=120, w=160)
+    code = KILL_CHILD.format(tests=str(Path(__file__).parent), out=str(out))
+
+    def run(delay: float | None) -> float:
+        with subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True) as child:
+            assert child.stdout.readline().strip() == "ready"
+            begun = time.perf_counter()
+            if delay is None:
+                assert child.wait(timeout=120) == 0
+                return time.perf_counter() - begun
+            time.sleep(delay)
+            child.send_signal(signal.SIGKILL)
+            child.wait(timeout=60)
+            return delay
+
+    mio.save_decomposition(old, out)
+    duration = run(None)  # how long one write takes here
+    assert_same(new, mio.load_decomposition(out))
+    rng = np.random.default_rng(7)
+    outcomes = {"old": 0, "new": 0}
+    for _ in range(20):
+        mio.save_decomposition(old, out)
+        run(float(rng.uniform(0.0, 1.2 * duration)))
+        loaded = mio.load_decomposition(out)  # never refuses: one of the two complete results is there
+        outcomes["new" if loaded.stems == new.stems else "old"] += 1
+        assert_same(new if loaded.stems == new.stems else old, loaded)
+    # The killed writers' work folders are removed by the next write.
+    mio.save_decomposition(old, out)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+    assert outcomes["old"] > 0  # the kills did interrupt writes
+
+
+def test_check_result_folder_refuses_before_any_work(tmp_path, scene_dir, monkeypatch):
+    a_file = tmp_path / "file.txt"
+    a_file.write_text("x")
+    with pytest.raises(mio.ResultFolderError, match="exists and is not a folder"):
+        mio.check_result_folder(a_file)
+    with pytest.raises(mio.ResultFolderError, match="exists and is not a folder"):
+        mio.check_result_folder(a_file / "out")
+    with pytest.raises(mio.ResultFolderError, match="inside the scene folder"):
+        mio.check_result_folder(scene_dir / "result", scene=scene_dir)
+    foreign = tmp_path / "notes"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("precious")
+    with pytest.raises(mio.ResultFolderError, match="not written by mvintrinsic.*--overwrite"):
+        mio.check_result_folder(foreign)
+    assert mio.check_result_folder(foreign, overwrite=True) == foreign.resolve()
+    monkeypatch.setattr(mio.os, "access", lambda path, mode: False)  # root may write anywhere: simulate
+    with pytest.raises(mio.ResultFolderError, match="not writable"):
+        mio.check_result_folder(tmp_path / "new" / "out")
+    assert not (tmp_path / "new").exists() and sorted(p.name for p in foreign.iterdir()) == ["thesis.tex"]
 
 
 def test_failing_writer_leaves_no_file(tmp_path):

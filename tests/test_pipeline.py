@@ -220,6 +220,33 @@ def test_cli_decompose_max_size_and_missing_sun(tmp_path, capsys):
     assert (result.lighting.sun_radiance == 0).all()
 
 
+def test_cli_refuses_a_bad_output_before_any_work(tmp_path, capsys, monkeypatch):
+    """Issue 18: OUT that is a file, inside the scene or a foreign folder is refused before decomposing."""
+    import mvintrinsic.pipeline
+
+    def never(*args, **kwargs):
+        raise AssertionError("decomposed before checking OUT")
+
+    monkeypatch.setattr(mvintrinsic.pipeline, "decompose", never)
+    a_file = tmp_path / "out.txt"
+    a_file.write_text("x")
+    foreign = tmp_path / "notes"
+    foreign.mkdir()
+    (foreign / "thesis.tex").write_text("precious")
+    demo = demo_scene_path()
+    for out, message in ((a_file, "is not a folder"), (demo / "result", "inside the scene folder"),
+                         (foreign, "not written by mvintrinsic")):
+        assert main(["decompose", str(demo), str(out), "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert str(out.resolve()) in err and message in err
+        assert main(["relight", str(demo), str(tmp_path), str(out), "--azimuth", "0", "--elevation", "30"]) == 2
+        assert message in capsys.readouterr().err
+    assert main(["demo", "--out", str(a_file)]) == 2
+    assert "is not a folder" in capsys.readouterr().err
+    assert a_file.read_text() == "x" and [p.name for p in foreign.iterdir()] == ["thesis.tex"]
+    assert not (demo / "result").exists()
+
+
 @pytest.mark.parametrize("content, suffix, message", [
     ("{not json", ".json", "not valid JSON"),
     ("sun = {walkk = 3}", ".toml", r"unknown key\(s\) \['walkk'\]"),

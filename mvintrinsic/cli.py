@@ -34,6 +34,7 @@ import numpy as np
 from ._version import __version__
 from .io import ResultFolderError, SceneError, load_scene
 from .scene import Scene
+from .skymodel import SkyFitError
 from .sun_calibration import SunCalibrationError
 from .sun_position import azimuth_elevation
 
@@ -485,7 +486,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
-    except (SceneError, ResultFolderError, SunCalibrationError, ValueError, FileExistsError, ImportError) as exc:
+    except (SceneError, ResultFolderError, SunCalibrationError, SkyFitError, ValueError, FileExistsError,
+            ImportError) as exc:
         print(f"mvintrinsic {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

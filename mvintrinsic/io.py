@@ -338,6 +338,7 @@ def read_colmap(sparse: os.PathLike | str) -> dict[str, Camera]:
     cameras_file = sparse / f"cameras{ext}"
     if ext == ".txt":
         _check_camera_models_txt(cameras_file)
+        _check_images_txt(sparse / "images.txt")
     with contextlib.ExitStack() as stack:
         folder = sparse
         if not (sparse / f"points3D{ext}").is_file():
@@ -372,6 +373,41 @@ def read_colmap(sparse: os.PathLike | str) -> dict[str, Camera]:
     if not cameras:
         raise SceneError(sparse / f"images{ext}", "the COLMAP model has no registered images")
     return cameras
+
+
+def _check_images_txt(path: Path) -> None:
+    """Refuse what pycolmap would silently accept in an images.txt: a zero or non-finite pose, or an
+    image given twice (the same IMAGE_ID or NAME on two pose lines)."""
+    lines = [(number, line) for number, line in enumerate(path.read_text().splitlines(), start=1)
+             if not line.lstrip().startswith("#")]
+    ids: dict[str, int] = {}
+    names: dict[str, int] = {}
+    pose_line = True
+    for number, line in lines:
+        if not pose_line:  # the POINTS2D line after every pose line (may be empty)
+            pose_line = True
+            continue
+        fields = line.split()
+        if not fields:
+            continue  # blank lines between images
+        pose_line = False
+        if len(fields) < 10:
+            raise SceneError(path, f"line {number}: expected 'IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME', "
+                             f"got {line.strip()!r}")
+        try:
+            pose = np.array([float(v) for v in fields[1:8]])
+        except ValueError:
+            raise SceneError(path, f"line {number}: the pose QW QX QY QZ TX TY TZ must be numbers, got "
+                             f"{' '.join(fields[1:8])!r}") from None
+        if not np.isfinite(pose).all():
+            raise SceneError(path, f"line {number} (image {fields[9]!r}): non-finite pose {fields[1:8]}")
+        if np.linalg.norm(pose[:4]) < 1e-6:
+            raise SceneError(path, f"line {number} (image {fields[9]!r}): zero quaternion QW QX QY QZ, "
+                             "not a rotation")
+        for key, seen, what in ((fields[0], ids, "IMAGE_ID"), (fields[9], names, "NAME")):
+            if key in seen:
+                raise SceneError(path, f"line {number}: {what} {key!r} given twice (also on line {seen[key]})")
+            seen[key] = number
 
 
 def _check_camera_models_txt(path: Path) -> None:
@@ -425,12 +461,21 @@ def read_proxy(path: os.PathLike | str, *, camera_centers: np.ndarray | None = N
     path = Path(path)
     if not path.is_file():
         raise SceneError(path, "proxy file not found")
+    if path.suffix.lower() == ".ply":
+        _check_ply_header(path)
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh = o3d.io.read_triangle_mesh(str(path), enable_post_processing=False)
         cloud = None
         if len(mesh.triangles) == 0:
             cloud = o3d.io.read_point_cloud(str(path))
     if cloud is None:
+        # open3d crashes the process on a face index outside the vertex list: check first.
+        faces, n_vertices = np.asarray(mesh.triangles), len(mesh.vertices)
+        wrong = (faces < 0) | (faces >= n_vertices)
+        if wrong.any():
+            face = int(np.flatnonzero(wrong.any(axis=1))[0])
+            raise SceneError(path, f"face {face} refers to vertex {int(faces[face][wrong[face]][0])}, but the file has "
+                             f"{n_vertices} vertices ({int(wrong.any(axis=1).sum())} such faces): corrupt face indices")
         mesh.remove_unreferenced_vertices()
         if not mesh.has_vertex_normals():
             mesh.compute_vertex_normals()
@@ -461,6 +506,50 @@ def read_proxy(path: os.PathLike | str, *, camera_centers: np.ndarray | None = N
         return Proxy(vertices, normals, triangles, colors)
     except ValueError as exc:
         raise SceneError(path, str(exc)) from exc
+
+
+#: Bytes of the PLY scalar types.
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2,
+              "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
+
+
+def _check_ply_header(path: Path) -> None:
+    """Refuse a PLY whose header is malformed or claims more elements than the file can hold.
+
+    Read before open3d allocates anything: each element needs at least its scalar properties'
+    bytes (binary) or two characters per property (ASCII), and a list at least its count.
+    """
+    with open(path, "rb") as handle:
+        head = handle.read(65536)
+    if not head.startswith(b"ply"):
+        return  # not a PLY after all: open3d says what it is
+    end = head.find(b"end_header")
+    if end < 0:
+        raise SceneError(path, "malformed PLY header (no 'end_header' in the first 64 kB)")
+    body = path.stat().st_size - (head.find(b"\n", end) + 1)
+    binary, needed, element = False, 0, None
+    for raw in head[:end].decode("ascii", errors="replace").splitlines():
+        fields = raw.split()
+        if not fields:
+            continue
+        if fields[0] == "format" and len(fields) > 1:
+            binary = fields[1].startswith("binary")
+        elif fields[0] == "element":
+            if len(fields) != 3 or not fields[2].isdigit():
+                raise SceneError(path, f"malformed PLY header line {raw.strip()!r}")
+            element = [fields[1], int(fields[2]), 0]
+            needed_before = needed
+        elif fields[0] == "property" and element is not None:
+            if len(fields) >= 2 and fields[1] == "list":
+                size = _PLY_SIZES.get(fields[2], 1) if (binary and len(fields) > 2) else 2
+            else:
+                size = _PLY_SIZES.get(fields[1], 1) if binary else 2
+            element[2] += size
+            needed = needed_before + element[1] * element[2]
+            if needed > body + 1:  # + 1: an ASCII body may lack its last newline
+                raise SceneError(path, f"the header claims {element[1]} {element[0]} elements, which need at least "
+                                 f"{needed} bytes, but the file holds {body} after its header (truncated or "
+                                 "corrupt)")
 
 
 def _repair_normals(vertices: np.ndarray, normals: np.ndarray, path: Path) -> np.ndarray:
@@ -705,6 +794,9 @@ def load_scene(
                 "(pass on_invalid='mask' to exclude them instead)",
             )
         mask = valid_pixels(image, saturation=saturation)
+        if not (mask & (image > 0).any(axis=2)).any():
+            raise SceneError(file, "the image holds no valid pixel above 0 (all black, saturated or invalid): it would "
+                             "give zero layers and bias L_sun; fix it or leave it out (load_scene(views=...), --views)")
         if max_size is not None and max(w, h) > max_size:
             scale = max_size / max(w, h)
             nw, nh = max(1, round(w * scale)), max(1, round(h * scale))

@@ -1022,7 +1022,8 @@ def fit_sky(
     used = w > 0
     n = int(used.sum())
     if n < config.min_texels:
-        raise SkyFitError(f"too few sky texels to fit the sky model: {n} (need at least {config.min_texels})")
+        raise SkyFitError(f"too few sky texels to fit the sky model: {n} (need at least {config.min_texels}): the "
+                          "views show too little bright sky above the horizon (sky-less, black or grey images?)")
     d, a, w = d[used], a[used], w[used]
     energy = float((w[:, None] * a * a).sum())
     if energy <= 0:

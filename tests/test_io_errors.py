@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from conftest import make_scene
 
+from mvintrinsic import io as mio
 from mvintrinsic.io import SceneError, load_scene, read_image, write_image
 
 # --- constants and tolerances (all in one place) --------------------------------------------
@@ -371,3 +372,96 @@ def test_sun_time_solstice_noon_on_equator(scene_dir):
     assert elevation == pytest.approx(SOLSTICE_ELEVATION_DEG, abs=ELEVATION_TOL_DEG)
     assert d[1] > 0  # the June sun stands north of the equator
     assert abs(azimuth_from_north) < AZIMUTH_TOL_DEG
+
+
+# --- the fault table (issue 18): hostile inputs end as one clear line, exit 2, nothing written ---
+def _ascii_proxy(scene: Path, *, extra_face=None, vertex_count=None) -> None:
+    """Rewrite proxy.ply as ASCII, optionally with one more face or a lying vertex count."""
+    proxy = mio.read_proxy(scene / "proxy.ply")
+    faces = proxy.triangles if extra_face is None else np.vstack([proxy.triangles, [extra_face]])
+    count = len(proxy.vertices) if vertex_count is None else vertex_count
+    header = ["ply", "format ascii 1.0", f"element vertex {count}", "property float x", "property float y",
+              "property float z", f"element face {len(faces)}", "property list uchar int vertex_indices", "end_header"]
+    body = [" ".join(f"{x:.6f}" for x in v) for v in proxy.vertices] + [f"3 {a} {b} {c}" for a, b, c in faces]
+    (scene / "proxy.ply").write_text("\n".join(header + body) + "\n")
+
+
+def _edit_pose_line(scene: Path, edit) -> None:
+    """Apply ``edit(fields) -> fields`` to the first pose line of sparse/images.txt."""
+    file = scene / "sparse" / "images.txt"
+    lines = file.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    lines[first] = " ".join(edit(lines[first].split()))
+    file.write_text("\n".join(lines) + "\n")
+
+
+def _duplicate_first_image(scene: Path) -> None:
+    file = scene / "sparse" / "images.txt"
+    lines = file.read_text().splitlines()
+    first = next(i for i, line in enumerate(lines) if line and not line.startswith("#"))
+    fields = lines[first].split()
+    fields[0] = "99"
+    file.write_text("\n".join([*lines, " ".join(fields), ""]) + "\n")
+
+
+def _blacken(scene: Path, names=(VIEW0,)) -> None:
+    for name in names:
+        image, _ = read_image(scene / "images" / name)
+        write_image(scene / "images" / name, np.zeros_like(image))
+
+
+def _greyen(scene: Path) -> None:
+    for name in (VIEW0, VIEW1):
+        image, _ = read_image(scene / "images" / name)
+        write_image(scene / "images" / name, np.full_like(image, 0.5))
+
+
+FAULTS = {
+    "face index beyond the vertices": (lambda s: _ascii_proxy(s, extra_face=[0, 1, 10**9]), "proxy.ply",
+                                       "corrupt face indices"),
+    "negative face index": (lambda s: _ascii_proxy(s, extra_face=[0, 1, -5]), "proxy.ply", "corrupt face indices"),
+    "PLY header claims billions of vertices": (lambda s: _ascii_proxy(s, vertex_count=4_000_000_000), "proxy.ply",
+                                               "header claims 4000000000"),
+    "PLY cut inside its header": (lambda s: (s / "proxy.ply").write_bytes((s / "proxy.ply").read_bytes()[:60]),
+                                  "proxy.ply", "malformed PLY header"),
+    "zero quaternion": (lambda s: _edit_pose_line(s, lambda f: [f[0], "0", "0", "0", "0", *f[5:]]), "images.txt",
+                        "zero quaternion"),
+    "NaN translation": (lambda s: _edit_pose_line(s, lambda f: [*f[:5], "nan", *f[6:]]), "images.txt",
+                        "non-finite pose"),
+    "pose that is not numbers": (lambda s: _edit_pose_line(s, lambda f: [f[0], "x", *f[2:]]), "images.txt",
+                                 "must be numbers"),
+    "image listed twice": (_duplicate_first_image, "images.txt", "given twice"),
+    "all-black view": (_blacken, VIEW0, "no valid pixel above 0"),
+    "every view black": (lambda s: _blacken(s, (VIEW0, VIEW1)), VIEW0, "no valid pixel above 0"),
+    "grey images (no sky to fit)": (_greyen, "", "too few sky texels"),
+}
+
+
+@pytest.mark.parametrize("fault", list(FAULTS))
+def test_fault_table(tmp_path, fault):
+    """Each hostile scene: exit 2, one line naming the culprit, scene byte-identical, no output."""
+    import hashlib
+    import subprocess
+    import sys
+
+    scene = make_scene(tmp_path / "scene")
+    damage, culprit, message = FAULTS[fault]
+    damage(scene)
+
+    def digest() -> str:
+        h = hashlib.sha256()
+        for p in sorted(scene.rglob("*")):
+            if p.is_file():
+                h.update(p.relative_to(scene).as_posix().encode() + p.read_bytes())
+        return h.hexdigest()
+
+    before = digest()
+    out = tmp_path / "out"
+    run = subprocess.run([sys.executable, "-m", "mvintrinsic.cli", "decompose", str(scene), str(out), "--quiet"],
+                         capture_output=True, text=True, timeout=600)
+    lines = [line for line in run.stderr.splitlines() if line.startswith("mvintrinsic decompose: error:")]
+    assert run.returncode == 2, run.stderr[-2000:]
+    assert "Traceback" not in run.stderr and len(lines) == 1
+    assert culprit in lines[0] and message in lines[0]
+    assert digest() == before
+    assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == ["scene"]

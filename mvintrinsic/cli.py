@@ -490,6 +490,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             ImportError) as exc:
         print(f"mvintrinsic {args.command}: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:  # a result being written is left as it was (io.save_decomposition)
+        print(f"mvintrinsic {args.command}: interrupted", file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":  # pragma: no cover

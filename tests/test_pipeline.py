@@ -247,6 +247,18 @@ def test_cli_refuses_a_bad_output_before_any_work(tmp_path, capsys, monkeypatch)
     assert not (demo / "result").exists()
 
 
+def test_cli_ctrl_c_is_a_short_message(tmp_path, capsys, monkeypatch):
+    import mvintrinsic.pipeline
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(mvintrinsic.pipeline, "decompose", interrupted)
+    assert main(["decompose", str(demo_scene_path()), str(tmp_path / "out"), "--quiet"]) == 130
+    err = capsys.readouterr().err
+    assert err.strip() == "mvintrinsic decompose: interrupted" and not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize("content, suffix, message", [
     ("{not json", ".json", "not valid JSON"),
     ("sun = {walkk = 3}", ".toml", r"unknown key\(s\) \['walkk'\]"),

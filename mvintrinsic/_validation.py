@@ -6,9 +6,13 @@ argument, the expected shape or range and what was received, as the style guide 
 
 from __future__ import annotations
 
+from typing import TypeVar
+
 import numpy as np
 
-__all__ = ["as_array", "as_unit_vector", "describe", "is_real"]
+T = TypeVar("T")
+
+__all__ = ["as_array", "as_unit_vector", "config_or_default", "describe", "is_real"]
 
 
 def describe(value: object) -> str:
@@ -16,6 +20,22 @@ def describe(value: object) -> str:
     if isinstance(value, np.ndarray):
         return f"array of shape {value.shape} and dtype {value.dtype}"
     return f"{type(value).__name__} {value!r}"[:120]
+
+
+def config_or_default(config: object, cls: type[T]) -> T:
+    """``cls()`` (the paper's values) for ``None``, else ``config`` itself if it is a ``cls``.
+
+    Raises
+    ------
+    TypeError
+        If ``config`` is neither ``None`` nor a ``cls``; the message names ``config`` and ``cls``.
+    """
+    if config is None:
+        return cls()
+    if not isinstance(config, cls):
+        article = "an" if cls.__name__[:1] in "AEIOU" else "a"
+        raise TypeError(f"config must be {article} {cls.__name__}, got {describe(config)}")
+    return config
 
 
 def is_real(value: object) -> bool:

@@ -77,7 +77,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse.linalg import spsolve
 
-from ._validation import describe, is_real
+from ._validation import config_or_default, describe, is_real
 from .correspondence import Correspondences, find_correspondences, fuse_views
 from .image_model import luminance
 from .pixels import SHADING_FLOOR, PixelQuantities, floored_shading, masked_box_mean
@@ -211,13 +211,6 @@ class EnvRefinement:
     pairs: OffsetPairs
 
 
-def _check_config(config: object) -> EnvRefineConfig:
-    if config is None:
-        return EnvRefineConfig()
-    if not isinstance(config, EnvRefineConfig):
-        raise TypeError(f"config must be an EnvRefineConfig, got {describe(config)}")
-    return config
-
 
 def _check_inputs(image: object, layers: object) -> tuple[np.ndarray, IntrinsicLayers]:
     if not isinstance(layers, IntrinsicLayers):
@@ -247,7 +240,7 @@ def boundary_pairs(image: np.ndarray, layers: IntrinsicLayers, *, config: EnvRef
     OffsetPairs
         Module docstring, steps 1-2.
     """
-    config = _check_config(config)
+    config = config_or_default(config, EnvRefineConfig)
     image, layers = _check_inputs(image, layers)
     v = layers.visibility
     env = layers.sky_shading.astype(np.float64) + layers.indirect_shading
@@ -324,7 +317,7 @@ def propagate_offsets(pairs: OffsetPairs, env: np.ndarray, *, config: EnvRefineC
     (H, W, 3) float64
         The offset ``x`` of every pixel (0 everywhere when there is no pair).
     """
-    config = _check_config(config)
+    config = config_or_default(config, EnvRefineConfig)
     env = np.asarray(env, dtype=np.float64)
     h, w = env.shape[:2]
     if not len(pairs):
@@ -435,7 +428,7 @@ def refine_environment(image: np.ndarray, layers: IntrinsicLayers, *, config: En
         If ``layers`` is not an IntrinsicLayers, ``image`` does not have its shape or is not finite,
         or ``config`` is not an EnvRefineConfig.
     """
-    config = _check_config(config)
+    config = config_or_default(config, EnvRefineConfig)
     image, layers = _check_inputs(image, layers)
     pairs = boundary_pairs(image, layers, config=config)
     env = layers.sky_shading.astype(np.float64) + layers.indirect_shading
@@ -569,7 +562,7 @@ def refine(views: Sequence[View], layers: Mapping[str, IntrinsicLayers], *,
         Naming the argument: a view without layers, layers of the wrong shape, ``"multiview"``
         without ``quantities`` or ``correspondences``.
     """
-    config = _check_config(config)
+    config = config_or_default(config, EnvRefineConfig)
     views = list(views)
     if not views:
         raise ValueError("views must not be empty")

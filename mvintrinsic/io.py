@@ -537,15 +537,11 @@ def _check_ply_header(path: Path) -> None:
         elif fields[0] == "element":
             if len(fields) != 3 or not fields[2].isdigit():
                 raise SceneError(path, f"malformed PLY header line {raw.strip()!r}")
-            element = [fields[1], int(fields[2]), 0]
-            needed_before = needed
-        elif fields[0] == "property" and element is not None:
-            if len(fields) >= 2 and fields[1] == "list":
-                size = _PLY_SIZES.get(fields[2], 1) if (binary and len(fields) > 2) else 2
-            else:
-                size = _PLY_SIZES.get(fields[1], 1) if binary else 2
-            element[2] += size
-            needed = needed_before + element[1] * element[2]
+            element = (fields[1], int(fields[2]))
+        elif fields[0] == "property" and element is not None and len(fields) >= 2:
+            # A list needs at least its count; ASCII at least a digit and a separator per value.
+            scalar = fields[2] if fields[1] == "list" and len(fields) > 2 else fields[1]
+            needed += element[1] * (_PLY_SIZES.get(scalar, 1) if binary else 2)
             if needed > body + 1:  # + 1: an ASCII body may lack its last newline
                 raise SceneError(path, f"the header claims {element[1]} {element[0]} elements, which need at least "
                                  f"{needed} bytes, but the file holds {body} after its header (truncated or "
@@ -850,6 +846,15 @@ def _nearest_existing(folder: Path) -> Path:
     return Path(folder.anchor)
 
 
+def _is_foreign(folder: Path) -> bool:
+    """A non-empty folder that mvintrinsic did not write (no :data:`RESULT_MARKER`)."""
+    return folder.is_dir() and any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file()
+
+
+def _write_marker(folder: Path) -> None:
+    _atomic_write(folder / RESULT_MARKER, lambda tmp: tmp.write_text("written by mvintrinsic\n"))
+
+
 def check_result_folder(
     folder: os.PathLike | str,
     *,
@@ -892,18 +897,16 @@ def check_result_folder(
     for candidate in (folder, *folder.parents):
         if _is_scene_folder(candidate):
             raise ResultFolderError(f"{folder}: refusing to write a result inside the scene folder {candidate}")
-    for candidate in (folder, *folder.parents):
-        if candidate.exists() and not candidate.is_dir():
-            raise ResultFolderError(f"{folder}: {candidate} exists and is not a folder")
-        if candidate.exists():
-            break
-    if folder.is_dir() and any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file() and not overwrite:
+    existing = _nearest_existing(folder)
+    if not existing.is_dir():
+        raise ResultFolderError(f"{folder}: {existing} exists and is not a folder")
+    if _is_foreign(folder) and not overwrite:
         raise ResultFolderError(
             f"{folder}: is not empty and was not written by mvintrinsic; choose another folder or pass "
             "overwrite=True (--overwrite) to write into it"
         )
     # The result is written beside the folder and swapped in, or (a foreign folder) into it.
-    for where in {_nearest_existing(folder.parent), _nearest_existing(folder)}:
+    for where in {_nearest_existing(folder.parent), existing}:
         if not os.access(where, os.W_OK | os.X_OK):
             raise ResultFolderError(f"{folder}: cannot write there ({where} is not writable)")
     return folder
@@ -914,7 +917,7 @@ def _prepare_result_folder(folder: Path, *, overwrite: bool, scene: Scene | os.P
     folder = check_result_folder(folder, scene=scene, overwrite=overwrite)
     folder.mkdir(parents=True, exist_ok=True)
     if not (folder / RESULT_MARKER).is_file():
-        _atomic_write(folder / RESULT_MARKER, lambda tmp: tmp.write_text("written by mvintrinsic\n"))
+        _write_marker(folder)
     return folder
 
 
@@ -927,8 +930,8 @@ def _alive(pid: int) -> bool:
         os.kill(pid, 0)
     except ProcessLookupError:
         return False
-    except (PermissionError, OverflowError):
-        return True
+    except (PermissionError, OverflowError):  # another user's process, or no such pid number
+        pass
     return True
 
 
@@ -988,15 +991,15 @@ def _swap_in(work: Path, folder: Path) -> None:
     shutil.rmtree(work, ignore_errors=True)  # now the old result
 
 
-def _result_files(result: Decomposition) -> dict[str, tuple[Callable[..., Path], np.ndarray, str]]:
-    """Relative path -> (writer, array, dtype) of every layer file of a result folder."""
+def _result_files(result: Decomposition) -> dict[str, tuple[np.ndarray, str]]:
+    """Relative path -> (array, :func:`write_image` dtype) of every layer file of a result folder."""
     files = {}
     if result.lighting.envmap is not None:
-        files["envmap.exr"] = (write_image, result.lighting.envmap, "float")
+        files["envmap.exr"] = (result.lighting.envmap, "float")
     for stem, layers in result.layers.items():
         for name in ("reflectance", "shading", "sun_shading", "sky_shading", "indirect_shading", "visibility"):
-            files[f"views/{stem}/{name}.exr"] = (write_image, getattr(layers, name), "float")
-        files[f"views/{stem}/shadow_labels.png"] = (write_image, layers.shadow_labels, "uint8")
+            files[f"views/{stem}/{name}.exr"] = (getattr(layers, name), "float")
+        files[f"views/{stem}/shadow_labels.png"] = (layers.shadow_labels, "uint8")
     return files
 
 
@@ -1050,8 +1053,8 @@ def save_decomposition(
     if not isinstance(result, Decomposition):
         raise TypeError(f"result must be a Decomposition, got {type(result).__name__}")
     folder = check_result_folder(folder, scene=scene, overwrite=overwrite)
-    if folder.is_dir() and any(folder.iterdir()) and not (folder / RESULT_MARKER).is_file():
-        folder = _prepare_result_folder(folder, overwrite=overwrite, scene=scene)
+    if _is_foreign(folder):  # overwrite=True: written in place, its other files kept
+        _write_marker(folder)
         with contextlib.suppress(FileNotFoundError):
             (folder / "lighting.json").unlink()  # incomplete until it is written again, last
         _write_result(result, folder)
@@ -1061,7 +1064,7 @@ def save_decomposition(
     work = Path(tempfile.mkdtemp(prefix=f".{folder.name}.{_PARTIAL}-{os.getpid()}-", dir=folder.parent))
     try:
         os.chmod(work, 0o777 & ~_umask())
-        _atomic_write(work / RESULT_MARKER, lambda tmp: tmp.write_text("written by mvintrinsic\n"))
+        _write_marker(work)
         _write_result(result, work)
         _swap_in(work, folder)
     except BaseException:
@@ -1073,9 +1076,8 @@ def save_decomposition(
 def _write_result(result: Decomposition, folder: Path) -> None:
     """Every layer file, then ``lighting.json`` with the manifest of their sizes."""
     sizes = {}
-    for relative, (writer, array, dtype) in _result_files(result).items():
-        path = writer(folder / relative, array, dtype=dtype)
-        sizes[relative] = path.stat().st_size
+    for relative, (array, dtype) in _result_files(result).items():
+        sizes[relative] = write_image(folder / relative, array, dtype=dtype).stat().st_size
     lighting = result.lighting.to_dict()
     lighting.update(
         views=list(result.stems), timings=dict(result.timings), version=result.version, config=dict(result.config),

@@ -118,7 +118,7 @@ import scipy.sparse as sp
 from scipy import ndimage
 from scipy.sparse import linalg as spla
 
-from ._validation import as_array, describe, is_real
+from ._validation import as_array, config_or_default, describe, is_real
 from .pixels import SHADING_FLOOR, PixelQuantities, layers_from_shading, nearest_fill
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import View
@@ -243,13 +243,6 @@ class MattingConfig:
 # --------------------------------------------------------------------------------------------
 # Input checks
 # --------------------------------------------------------------------------------------------
-
-def _check_config(config: object) -> MattingConfig:
-    if config is None:
-        return MattingConfig()
-    if not isinstance(config, MattingConfig):
-        raise TypeError(f"config must be a MattingConfig, got {describe(config)}")
-    return config
 
 
 def _check_image(image: object) -> np.ndarray:
@@ -723,7 +716,7 @@ def sun_visibility_matting(
         Naming the argument: wrong shapes or dtypes, labels other than 0/128/255, an image that is
         not finite on the mask.
     """
-    config = _check_config(config)
+    config = config_or_default(config, MattingConfig)
     image = _check_image(image)
     shape = image.shape[:2]
     valid = _check_mask(mask, shape, image)
@@ -787,7 +780,7 @@ def propagate(
         Naming the argument: wrong shapes, non-finite constraint values, or no ``known`` pixel in
         ``mask & ~band`` (while ``mask`` is not empty).
     """
-    config = _check_config(config)
+    config = config_or_default(config, MattingConfig)
     image = _check_image(image)
     shape = image.shape[:2]
     valid = _check_mask(mask, shape, image)
@@ -860,7 +853,7 @@ def intrinsic_layers(
     ValueError, TypeError
         Naming the argument, for inputs of the wrong shape, dtype or range.
     """
-    config = _check_config(config)
+    config = config_or_default(config, MattingConfig)
     if not isinstance(view, View):
         raise TypeError(f"view must be a View, got {describe(view)}")
     if not isinstance(quantities, PixelQuantities):

@@ -90,7 +90,7 @@ from types import MappingProxyType
 import numpy as np
 from scipy import ndimage
 
-from ._validation import as_array, as_unit_vector, describe, is_real
+from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .correspondence import Correspondences, _check_views, find_correspondences, fuse_views, log_image
 from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
@@ -705,9 +705,7 @@ def label_shadows_multiview(
     """
     from tqdm.auto import tqdm
 
-    config = MultiViewShadowConfig() if config is None else config
-    if not isinstance(config, MultiViewShadowConfig):
-        raise TypeError(f"config must be a MultiViewShadowConfig, got {describe(config)}")
+    config = config_or_default(config, MultiViewShadowConfig)
     ordered = _check_views(views, quantities)
     radiance = _check_sun(sun_radiance)
     timings = dict.fromkeys(("evidence", "correspondences", "palette", "fusion", "graph_cut", "consensus"), 0.0)

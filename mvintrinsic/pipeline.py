@@ -39,6 +39,7 @@ from typing import Any
 
 import numpy as np
 
+from ._validation import config_or_default
 from .correspondence import Correspondences
 from .env_refine import EnvRefineConfig, Step4Result, refine
 from .matting import MattingConfig, intrinsic_layers
@@ -384,9 +385,7 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a Scene, got {type(scene).__name__}")
-    config = config or Config()
-    if not isinstance(config, Config):
-        raise TypeError(f"config must be a Config, got {type(config).__name__}")
+    config = config_or_default(config, Config)
     timings: dict[str, float] = {}
 
     logger.info("step 1: environment map, sky model, S_sky, S_ind, ~v on %d proxy vertices", len(scene.proxy.vertices))

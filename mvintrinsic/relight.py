@@ -257,7 +257,7 @@ from types import MappingProxyType
 import numpy as np
 from scipy import ndimage
 
-from ._validation import as_array, as_unit_vector, describe, is_real
+from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
 from .image_model import LUMINANCE_WEIGHTS
 from .pixels import nearest_fill
@@ -517,13 +517,6 @@ class Caster:
 # ---------------------------------------------------------------------------------------------
 # argument checks
 # ---------------------------------------------------------------------------------------------
-def _check_config(config: object) -> RelightConfig:
-    if config is None:
-        return RelightConfig()
-    if not isinstance(config, RelightConfig):
-        raise TypeError(f"config must be a RelightConfig, got {describe(config)}")
-    return config
-
 
 def _check_camera(camera: object) -> Camera:
     if not isinstance(camera, Camera):
@@ -828,7 +821,7 @@ def build_caster(
     """
     camera = _check_camera(camera)
     tracer = _check_tracer(tracer)
-    config = _check_config(config)
+    config = config_or_default(config, RelightConfig)
     sun = _check_sun(sun_direction, up)
     shape = camera.shape
     shadow = _image_array(shadow, "shadow", shape, bool)
@@ -917,7 +910,7 @@ def remove_contradicted(caster: Caster, lit_points: Sequence[np.ndarray], sun_di
     """
     if not isinstance(caster, Caster):
         raise TypeError(f"caster must be a Caster, got {describe(caster)}")
-    config = _check_config(config)
+    config = config_or_default(config, RelightConfig)
     sun = as_unit_vector(sun_direction, "sun_direction")
     points = [as_array(p, f"lit_points[{i}]", shape=(None, 3), dtype=np.float64) for i, p in enumerate(lit_points)]
     counts = _first_hit_counts(caster.vertices, caster.triangles, points, sun, config.ray_offset, batch)
@@ -958,7 +951,7 @@ def contradicted_primitives(tracer: Tracer, lit_points: Sequence[np.ndarray], su
         Sorted indices of the contradicted primitives.
     """
     tracer = _check_tracer(tracer)
-    config = _check_config(config)
+    config = config_or_default(config, RelightConfig)
     sun = as_unit_vector(sun_direction, "sun_direction")
     ids = [np.zeros(0, dtype=np.int64)]
     for i, p in enumerate(lit_points):
@@ -1165,7 +1158,7 @@ class ShadowCaster:
             If the sun is at or below the horizon (the message names ``sun_direction``) or an
             array has the wrong shape.
         """
-        config = _check_config(config)
+        config = config_or_default(config, RelightConfig)
         sun = _check_sun(sun_direction, up)
         points = _image_array(receiver_points, "receiver_points", None, np.float64, trailing=(3,))
         shape = points.shape[:2]
@@ -1646,7 +1639,7 @@ class Relighter:
     def __init__(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None = None,
                  tracer: Tracer | None = None, batch: int = DEFAULT_BATCH) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
-        config = _check_config(config)
+        config = config_or_default(config, RelightConfig)
         if tracer is None:
             tracer = Tracer(scene.proxy)
         tracer = _check_tracer(tracer)

@@ -108,7 +108,7 @@ import numpy as np
 from scipy import ndimage, sparse
 from scipy.sparse import csgraph
 
-from ._validation import as_array, describe, is_real
+from ._validation import as_array, config_or_default, describe, is_real
 from .image_model import LUMINANCE_WEIGHTS
 
 __all__ = [
@@ -542,9 +542,7 @@ def segment(
     TypeError
         If ``config`` is not a :class:`SegmentationConfig` or an input is not numeric.
     """
-    config = SegmentationConfig() if config is None else config
-    if not isinstance(config, SegmentationConfig):
-        raise TypeError(f"config must be a SegmentationConfig, got {describe(config)}")
+    config = config_or_default(config, SegmentationConfig)
     image = as_array(image, "image", shape=(None, None, 3), dtype=np.float32, finite=False)
     shape = image.shape[:2]
     if 0 in shape:

@@ -152,7 +152,7 @@ from types import MappingProxyType
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._validation import as_array, describe, is_real
+from ._validation import as_array, config_or_default, describe, is_real
 from .image_model import reflectance, sun_shading
 from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
@@ -849,9 +849,7 @@ def label_shadows(
     TypeError
         If an argument has the wrong type.
     """
-    config = ShadowConfig() if config is None else config
-    if not isinstance(config, ShadowConfig):
-        raise TypeError(f"config must be a ShadowConfig, got {describe(config)}")
+    config = config_or_default(config, ShadowConfig)
     if not isinstance(quantities, PixelQuantities):
         raise TypeError(f"quantities must be PixelQuantities, got {describe(quantities)}")
     if not isinstance(segmentation, Segmentation):

@@ -51,7 +51,7 @@ import scipy.optimize
 import scipy.sparse
 import scipy.sparse.linalg
 
-from ._validation import as_array, as_unit_vector, describe
+from ._validation import as_array, as_unit_vector, config_or_default, describe
 from .image_model import luminance
 from .results import SkyParameters
 from .scene import View
@@ -442,7 +442,7 @@ def horizon_plane(
         no candidate within the angle tolerance, or the best one is not denser than its
         surroundings by ``config.horizon_min_contrast`` (e.g. a horizontal slice through walls).
     """
-    config = _check_config(config)
+    config = config_or_default(config, SkyConfig)
     points = as_array(vertices, "vertices", shape=(None, 3), dtype=np.float64)
     if len(points) < 3:
         raise ValueError(f"vertices must hold at least 3 points, got {len(points)}")
@@ -659,7 +659,7 @@ def detect_sky(
     """
     if not isinstance(partial, PartialEnvironmentMap):
         raise TypeError(f"partial must be a PartialEnvironmentMap, got {describe(partial)}")
-    config = _check_config(config)
+    config = config_or_default(config, SkyConfig)
     normal = as_unit_vector(horizon_normal, "horizon_normal")
     directions = envmap_directions(partial.height, up=partial.up)
     candidates = partial.known & (directions @ normal > 0)
@@ -939,13 +939,6 @@ class SkyModel:
         )
 
 
-def _check_config(config: SkyConfig | None) -> SkyConfig:
-    if config is None:
-        return SkyConfig()
-    if not isinstance(config, SkyConfig):
-        raise TypeError(f"config must be a SkyConfig, got {describe(config)}")
-    return config
-
 
 def _best_scale(f: np.ndarray, a: np.ndarray, w: np.ndarray) -> np.ndarray:
     """Closed-form ``k_c = Σ w f_c A_c / Σ w f_c²`` (normal equation of Eq. 4 for fixed t), (3,)."""
@@ -1004,7 +997,7 @@ def fit_sky(
         If fewer than ``config.min_texels`` texels have a positive weight, or all their radiance
         is zero.
     """
-    config = _check_config(config)
+    config = config_or_default(config, SkyConfig)
     d = _unit_rows(directions, "directions")
     a = as_array(radiance, "radiance", shape=(len(d), 3), dtype=np.float64)
     if (a < 0).any():
@@ -1084,7 +1077,7 @@ def sky_fit_outliers(
     """
     if not isinstance(model, SkyModel):
         raise TypeError(f"model must be a SkyModel, got {describe(model)}")
-    config = _check_config(config)
+    config = config_or_default(config, SkyConfig)
     d = _unit_rows(directions, "directions")
     a = as_array(radiance, "radiance", shape=(len(d), 3), dtype=np.float64)
     if config.outlier_ratio is None:
@@ -1335,7 +1328,7 @@ def estimate_environment(
     SkyFitError
         If too few sky texels are visible.
     """
-    config = _check_config(config)
+    config = config_or_default(config, SkyConfig)
     partial = partial_environment_map(views, uncovered, height=config.envmap_height, up=up)
     sky = detect_sky(partial, horizon_normal=horizon_normal, config=config)
     directions = envmap_directions(partial.height, up=partial.up)

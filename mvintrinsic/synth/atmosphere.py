@@ -117,7 +117,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from .._validation import as_unit_vector, is_real
+from .._validation import as_unit_vector, config_or_default, is_real
 
 __all__ = [
     "MIE_PHASE_FUNCTIONS",
@@ -786,9 +786,7 @@ def clear_sky(sun_direction: object, *, width: int = 512, config: AtmosphereConf
         raise ValueError(f"width must be an integer multiple of 4, >= 8, got {width!r}")
     if not (is_real(scale) and math.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a finite number > 0, got {scale!r}")
-    config = AtmosphereConfig() if config is None else config
-    if not isinstance(config, AtmosphereConfig):
-        raise TypeError(f"config must be an AtmosphereConfig, got {type(config).__name__}")
+    config = config_or_default(config, AtmosphereConfig)
     optics = _optics(config)
     height = width // 2
     directions = _texel_directions(np.arange(height)[:, None], np.arange(width)[None, :], height).reshape(-1, 3)

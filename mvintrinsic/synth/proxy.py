@@ -70,7 +70,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .._validation import describe
+from .._validation import config_or_default, describe
 from ..camera import Camera
 from ..raytrace import triangle_scene
 from ..scene import Proxy
@@ -650,10 +650,7 @@ def simulate_mvs_proxy(
     vertices, triangles = _check_mesh(vertices, triangles)
     labels = _check_labels(face_labels, len(triangles))
     cameras = _check_cameras(cameras)
-    if config is None:
-        config = ProxyConfig()
-    if not isinstance(config, ProxyConfig):
-        raise TypeError(f"config must be a ProxyConfig, got {describe(config)}")
+    config = config_or_default(config, ProxyConfig)
     if isinstance(rng, bool) or not (rng is None or isinstance(rng, (int, np.integer, np.random.Generator))):
         raise TypeError(f"rng must be a numpy Generator, an int seed or None, got {describe(rng)}")
     rng = np.random.default_rng(rng)

@@ -166,7 +166,7 @@ class MeshShadow:
 
     def __init__(self, folder: Path, scene) -> None:
         mesh = read_proxy(folder / "gt" / "mesh.ply")
-        tracer = Tracer(mesh)
+        self.tracer = tracer = Tracer(mesh)
         self.caster = ShadowCaster(Caster(mesh.vertices, mesh.triangles.astype(np.int32), np.zeros(0, np.int64),
                                           None, None, 0, 0, 0, 0))
         self.points, self.normals = {}, {}
@@ -587,19 +587,21 @@ def receivers_scene(folder: Path) -> dict:
     ours = Relighter(truth, scene, config=config, tracer=tracer)
     plain = Relighter(truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
     mesh = MeshShadow(folder, scene)
+    every_pixel = dataclasses.replace(config, ray_stride=1)
+    # The exact mesh as the proxy completion of an empty caster: the relighter's own rays, offset,
+    # attached-shadow test, near-hit rule (``min_distance``) and blur, from the proxy's receivers.
+    nothing = ShadowCaster(Caster(np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros(0, np.int64),
+                                  None, None, 0, 0, 0, 0))
+
+    def exact_from_proxy(sun: np.ndarray, min_distance: float) -> dict:
+        return {s: nothing.sun_visibility(plain.receivers[s], plain.normals[s], sun, proxy_tracer=mesh.tracer,
+                                          min_distance=min_distance, config=every_pixel) for s in stems}
+
     out = {}
     for tag, (direction, images, _) in tags.items():
         sun = np.asarray(direction, dtype=np.float64)
-        facing = {s: ~((plain.normals[s] @ sun) <= 0.0) for s in stems}  # NaN normal: no attached shadow
-        distance = {s: mesh.caster.hit_distance(plain.receivers[s].reshape(-1, 3) + config.ray_offset * sun,
-                                                sun).reshape(plain.receivers[s].shape[:2]) for s in stems}
-
-        def blurred(lit: dict) -> dict:
-            return {s: ndimage.gaussian_filter(lit[s].astype(np.float32), config.blur, mode="nearest") for s in stems}
-
-        everything = blurred({s: ~np.isfinite(distance[s]) & facing[s] for s in stems})
-        far = blurred({s: ((distance[s] + config.ray_offset < config.completion_distance)
-                           | ~np.isfinite(distance[s])) & facing[s] for s in stems})
+        everything = exact_from_proxy(sun, 0.0)
+        far = exact_from_proxy(sun, config.completion_distance)
         caster = ours.visibility_at(sun)
         rows = {"input": inputs,
                 "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),

@@ -142,6 +142,13 @@ def _print_decomposition(result, scene: Scene) -> None:
     print(f"L_sun        {np.round(sun, 4).tolist()} (shading units)")
     if sky is not None:
         print(f"sky          {sky.model}, turbidity {sky.turbidity:.2f}, scale {np.round(sky.scale, 4).tolist()}")
+    if result.lighting.horizon_evidence == "up":
+        print("horizon      from the scene's up vector: the proxy has no clear ground plane")
+    gains = result.lighting.exposure
+    if gains is not None and gains.applied:
+        stops = np.log2(gains.estimated.mean(axis=1))
+        print(f"exposure     per-view gains compensated, {stops.min():+.2f} to {stops.max():+.2f} stops "
+              "(lighting.json 'exposure')")
     step1 = sum(v for k, v in result.timings.items() if k.startswith("step1."))
     others = ", ".join(f"{k} {v:.2f}" for k, v in result.timings.items() if not k.startswith("step1."))
     print(f"seconds      step1 {step1:.2f}, {others} ({len(scene.views)} views)")

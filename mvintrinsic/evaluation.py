@@ -47,7 +47,7 @@ import numpy as np
 from . import metrics
 from ._validation import as_array, describe
 from ._version import __version__
-from .io import IMAGE_EXTENSIONS, SceneError, load_decomposition, read_image, read_scene_json
+from .io import IMAGE_EXTENSIONS, SceneError, load_decomposition, read_image, read_image_for_size, read_scene_json
 from .pixels import masked_box_mean
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting
 from .scene import Sun, valid_pixels
@@ -427,8 +427,9 @@ def ground_truth_decomposition(scene_folder: os.PathLike | str, *, views: Sequen
 # ---------------------------------------------------------------------------------------------
 # scoring
 # ---------------------------------------------------------------------------------------------
-def _input_image(root: Path, stem: str) -> tuple[np.ndarray, np.ndarray, Path]:
-    """The photo of a view (``images/<stem>.<ext>``) and its valid-pixel mask."""
+def _input_image(root: Path, stem: str, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray, Path]:
+    """The photo of a view (``images/<stem>.<ext>``) and its valid-pixel mask; ``shape`` (H, W)
+    is the size the scene expects (:func:`~mvintrinsic.io.read_image_for_size`)."""
     target = root / "images" / stem
     found = [
         p
@@ -439,7 +440,7 @@ def _input_image(root: Path, stem: str) -> tuple[np.ndarray, np.ndarray, Path]:
         raise SceneError(target, f"no input image for view {stem!r} (images/{stem}.<ext>, ext in {IMAGE_EXTENSIONS})")
     if len(found) > 1:
         raise SceneError(target, f"several input images for view {stem!r}: {sorted(p.name for p in found)}")
-    image, saturation = read_image(found[0])
+    image, saturation = read_image_for_size(found[0], width=shape[1], height=shape[0])
     return image, valid_pixels(image, saturation=saturation), found[0]
 
 
@@ -648,7 +649,7 @@ def evaluate(
                 f"result layers are {layers.shape[1]}x{layers.shape[0]} pixels, the ground truth "
                 f"{gt.shape[1]}x{gt.shape[0]}",
             )
-        image, image_valid, image_path = _input_image(root, stem)
+        image, image_valid, image_path = _input_image(root, stem, gt.shape)
         if image.shape[:2] != gt.shape:
             raise SceneError(
                 image_path, f"is {image.shape[1]}x{image.shape[0]} pixels, the ground truth {gt.shape[1]}x{gt.shape[0]}"

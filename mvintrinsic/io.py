@@ -37,7 +37,7 @@ import numpy as np
 from ._libusb import ensure_libusb
 from .camera import CAMERA_MODELS, Camera
 from .raytrace import Tracer
-from .results import Decomposition, IntrinsicLayers, Lighting, SkyParameters
+from .results import Decomposition, IntrinsicLayers, Lighting, SkyParameters, ViewGains
 from .scene import Proxy, Scene, Sun, View, valid_pixels
 from .sun_position import sun_from_clicks, sun_from_time
 
@@ -50,7 +50,9 @@ __all__ = [
     "load_decomposition",
     "load_scene",
     "read_colmap",
+    "exif_orient",
     "read_image",
+    "read_image_for_size",
     "read_proxy",
     "read_scene_json",
     "save_decomposition",
@@ -111,34 +113,94 @@ def _srgb_lut(levels: int) -> np.ndarray:
     return lut
 
 
-def _read_stored(path: Path, missing: str) -> np.ndarray:
+def _first_line(message: str) -> str:
+    """The first non-empty line of a library's error message (one-line errors, docs/formats.md)."""
+    return next((line.strip() for line in message.splitlines() if line.strip()), "")
+
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def _check_png(path: Path) -> None:
+    """Refuse a PNG cut before its IEND chunk, before libpng reads it (it prints on stderr).
+
+    Walks the chunk headers (length, type) without reading their data.
+    """
+    size = path.stat().st_size
+    with open(path, "rb") as handle:
+        if handle.read(8) != _PNG_SIGNATURE:
+            return  # not a PNG: OpenImageIO names what it is
+        offset = 8
+        while True:
+            header = handle.read(8)
+            if len(header) < 8:
+                raise SceneError(path, f"truncated PNG: the file ends at byte {size} before its IEND chunk")
+            length, kind = int.from_bytes(header[:4], "big"), header[4:]
+            offset += 12 + length
+            if offset > size:
+                raise SceneError(path, f"truncated PNG: its {kind.decode('latin-1')!r} chunk needs {offset} bytes, "
+                                 f"the file holds {size}")
+            if kind == b"IEND":
+                return
+            handle.seek(offset)
+
+
+def _read_stored(path: Path, missing: str) -> tuple[np.ndarray, int]:
     """Pixels of an image file as stored: (H, W, C) uint8, uint16 or float32 (any other type is
-    read as float32). Raises SceneError naming the file when it is missing, unreadable or cut."""
+    read as float32), and the file's EXIF orientation (1-8, 1 when absent or invalid). Raises
+    SceneError naming the file when it is missing, unreadable or cut."""
     import OpenImageIO as oiio
 
     if not path.is_file():
         raise SceneError(path, missing)
+    if path.suffix.lower() == ".png":
+        _check_png(path)
     inp = oiio.ImageInput.open(str(path))
     if inp is None:
-        raise SceneError(path, f"unreadable image ({oiio.geterror().strip() or 'unknown format'})")
+        raise SceneError(path, f"unreadable image ({_first_line(oiio.geterror()) or 'unknown format'})")
     try:
         spec = inp.spec()
         fmt = {oiio.UINT8: "uint8", oiio.UINT16: "uint16"}.get(spec.format.basetype, "float")
         data = inp.read_image(0, 0, 0, spec.nchannels, fmt)
         if data is None or inp.has_error:
-            raise SceneError(path, f"unreadable or truncated image ({inp.geterror().strip()})")
+            raise SceneError(path, f"unreadable or truncated image ({_first_line(inp.geterror())})")
+        orientation = spec.get_int_attribute("Orientation", 1)
     finally:
         inp.close()
-    return np.asarray(data).reshape(spec.height, spec.width, spec.nchannels)
+    return np.asarray(data).reshape(spec.height, spec.width, spec.nchannels), (orientation if 1 <= orientation <= 8 else 1)
 
 
-def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:
+def exif_orient(image: np.ndarray, orientation: int) -> np.ndarray:
+    """The image as displayed: stored pixels ``(H, W, ...)`` turned by an EXIF orientation 1-8.
+
+    Orientations 5-8 swap the axes (a photo taken in portrait). The result is a view of
+    ``image`` (no copy).
+    """
+    if orientation not in range(1, 9):
+        raise ValueError(f"orientation must be an EXIF orientation 1-8, got {orientation!r}")
+    swap = (1, 0, *range(2, image.ndim))
+    return {
+        1: lambda a: a,
+        2: lambda a: a[:, ::-1],
+        3: lambda a: a[::-1, ::-1],
+        4: lambda a: a[::-1],
+        5: lambda a: a.transpose(swap),
+        6: lambda a: a[::-1].transpose(swap),
+        7: lambda a: a[::-1, ::-1].transpose(swap),
+        8: lambda a: a[:, ::-1].transpose(swap),
+    }[orientation](image)
+
+
+def read_image(path: os.PathLike | str, *, orient: bool = False) -> tuple[np.ndarray, float | None]:
     """Read an image file as linear RGB.
 
     Parameters
     ----------
     path : path-like
         EXR, TIFF, PNG or JPEG file.
+    orient : bool, optional
+        Turn the pixels by the file's EXIF orientation (as image viewers show it). Default: the
+        pixels as stored, the convention of COLMAP, which ignores the tag.
 
     Returns
     -------
@@ -155,7 +217,9 @@ def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:
         If the file is missing, unreadable, truncated or has an unsupported channel count.
     """
     path = Path(path)
-    data = _read_stored(path, "image file not found")
+    data, orientation = _read_stored(path, "image file not found")
+    if orient:
+        data = exif_orient(data, orientation)
     channels = data.shape[2]
     if channels not in (1, 2, 3, 4):
         raise SceneError(path, f"unsupported image with {channels} channels (need 1-4)")
@@ -170,6 +234,19 @@ def read_image(path: os.PathLike | str) -> tuple[np.ndarray, float | None]:
     else:
         data = data[..., :3]
     return np.ascontiguousarray(data), (1.0 if integer else None)
+
+
+def read_image_for_size(path: os.PathLike | str, *, width: int, height: int) -> tuple[np.ndarray, float | None]:
+    """:func:`read_image` as the scene's camera expects it: the pixels as stored (COLMAP's
+    convention, which ignores the EXIF orientation), unless only the orientation makes them
+    ``width`` x ``height`` (a model made from the photos as displayed)."""
+    image, saturation = read_image(path)
+    h, w = image.shape[:2]
+    if (w, h) == (height, width) and w != h:
+        turned, _ = read_image(path, orient=True)
+        if turned.shape[:2] == (height, width):
+            return turned, saturation
+    return image, saturation
 
 
 def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
@@ -337,8 +414,8 @@ def read_colmap(sparse: os.PathLike | str) -> dict[str, Camera]:
         raise SceneError(sparse, "no COLMAP model: need cameras.txt + images.txt or cameras.bin + images.bin")
     cameras_file = sparse / f"cameras{ext}"
     if ext == ".txt":
-        _check_camera_models_txt(cameras_file)
-        _check_images_txt(sparse / "images.txt")
+        camera_ids = _check_camera_models_txt(cameras_file)
+        _check_images_txt(sparse / "images.txt", camera_ids)
     with contextlib.ExitStack() as stack:
         folder = sparse
         if not (sparse / f"points3D{ext}").is_file():
@@ -375,9 +452,10 @@ def read_colmap(sparse: os.PathLike | str) -> dict[str, Camera]:
     return cameras
 
 
-def _check_images_txt(path: Path) -> None:
+def _check_images_txt(path: Path, camera_ids: set[str] | None = None) -> None:
     """Refuse what pycolmap would silently accept in an images.txt: a zero or non-finite pose, or an
-    image given twice (the same IMAGE_ID or NAME on two pose lines)."""
+    image given twice (the same IMAGE_ID or NAME on two pose lines); and, naming the line, what it
+    would refuse vaguely: a CAMERA_ID not in ``camera_ids`` (those of cameras.txt)."""
     lines = [(number, line) for number, line in enumerate(path.read_text().splitlines(), start=1)
              if not line.lstrip().startswith("#")]
     ids: dict[str, int] = {}
@@ -404,28 +482,50 @@ def _check_images_txt(path: Path) -> None:
         if np.linalg.norm(pose[:4]) < 1e-6:
             raise SceneError(path, f"line {number} (image {fields[9]!r}): zero quaternion QW QX QY QZ, "
                              "not a rotation")
+        if camera_ids is not None and fields[8] not in camera_ids:
+            raise SceneError(path, f"line {number} (image {fields[9]!r}): CAMERA_ID {fields[8]} is not in cameras.txt "
+                             f"(its cameras: {', '.join(sorted(camera_ids, key=lambda c: (len(c), c)))})")
         for key, seen, what in ((fields[0], ids, "IMAGE_ID"), (fields[9], names, "NAME")):
             if key in seen:
                 raise SceneError(path, f"line {number}: {what} {key!r} given twice (also on line {seen[key]})")
             seen[key] = number
 
 
-def _check_camera_models_txt(path: Path) -> None:
-    """Name the unknown model of a cameras.txt before pycolmap rejects it with a vaguer message."""
+def _check_camera_models_txt(path: Path) -> set[str]:
+    """Name what pycolmap would reject with a vaguer message in a cameras.txt: an unknown model, a
+    parameter count that is not the model's, a parameter that is not a finite number. Returns the
+    CAMERA_IDs."""
     import pycolmap
 
     known = {m for m in dir(pycolmap.CameraModelId) if m.isupper()}
+    ids = set()
     for number, line in enumerate(path.read_text().splitlines(), start=1):
         fields = line.split()
         if not fields or fields[0].startswith("#"):
             continue
         if len(fields) < 4:
             raise SceneError(path, f"line {number}: expected 'CAMERA_ID MODEL WIDTH HEIGHT PARAMS...', got {line!r}")
-        if fields[1] not in known or fields[1] not in CAMERA_MODELS:
+        camera, model = fields[0], fields[1]
+        if model not in known or model not in CAMERA_MODELS:
             raise SceneError(
                 path,
-                f"line {number}: unknown or unsupported camera model {fields[1]!r} (supported: {', '.join(CAMERA_MODELS)})",
+                f"line {number}: unknown or unsupported camera model {model!r} (supported: {', '.join(CAMERA_MODELS)})",
             )
+        names = CAMERA_MODELS[model]
+        if len(fields) - 4 != len(names):
+            raise SceneError(path, f"line {number} (camera {camera}): a {model} camera has {len(names)} params "
+                             f"({', '.join(names)}), got {len(fields) - 4}")
+        try:
+            values = [float(v) for v in fields[2:]]
+        except ValueError:
+            raise SceneError(path, f"line {number} (camera {camera}): WIDTH HEIGHT and params must be numbers, got "
+                             f"{' '.join(fields[2:])!r}") from None
+        bad = [name for name, v in zip(("WIDTH", "HEIGHT", *names), values, strict=True) if not math.isfinite(v)]
+        if bad:
+            raise SceneError(path, f"line {number} (camera {camera}): {', '.join(bad)} must be finite numbers, got "
+                             f"{' '.join(fields[2:])!r}")
+        ids.add(camera)
+    return ids
 
 
 # ---------------------------------------------------------------------------------------------
@@ -480,6 +580,7 @@ def read_proxy(path: os.PathLike | str, *, camera_centers: np.ndarray | None = N
         if not mesh.has_vertex_normals():
             mesh.compute_vertex_normals()
         vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+        _check_finite_vertices(vertices, path)
         normals = np.asarray(mesh.vertex_normals)
         colors = np.asarray(mesh.vertex_colors) if mesh.has_vertex_colors() else None
     else:
@@ -487,6 +588,7 @@ def read_proxy(path: os.PathLike | str, *, camera_centers: np.ndarray | None = N
         vertices = np.asarray(cloud.points)
         if len(vertices) == 0:
             raise SceneError(path, "the proxy is empty (no vertices could be read)")
+        _check_finite_vertices(vertices, path)
         if not cloud.has_normals() and len(vertices) >= 3:
             cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(knn=min(knn, len(vertices))))
             normals = np.asarray(cloud.normals).copy()
@@ -513,6 +615,14 @@ _PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort"
               "int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4, "double": 8, "float64": 8}
 
 
+def _check_finite_vertices(vertices: np.ndarray, path: Path) -> None:
+    """Refuse NaN or infinite vertex coordinates, naming the first."""
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise SceneError(path, f"{int(bad.sum())} vertices have NaN or infinite coordinates (the first: vertex "
+                         f"{int(np.flatnonzero(bad)[0])}); every coordinate must be finite")
+
+
 def _check_ply_header(path: Path) -> None:
     """Refuse a PLY whose header is malformed or claims more elements than the file can hold.
 
@@ -521,8 +631,10 @@ def _check_ply_header(path: Path) -> None:
     """
     with open(path, "rb") as handle:
         head = handle.read(65536)
+    if not head:
+        raise SceneError(path, "empty file (0 bytes): not a PLY mesh or point cloud")
     if not head.startswith(b"ply"):
-        return  # not a PLY after all: open3d says what it is
+        raise SceneError(path, f"not a PLY file (it starts with {head[:16]!r}, not 'ply')")
     end = head.find(b"end_header")
     if end < 0:
         raise SceneError(path, "malformed PLY header (no 'end_header' in the first 64 kB)")
@@ -729,6 +841,9 @@ def load_scene(
     Scene
         With ``source`` set to the folder. Each view's mask excludes saturated pixels of integer
         images (any channel at the maximum code) and, with ``on_invalid="mask"``, invalid pixels.
+        Pixels are taken as stored in the file, COLMAP's convention (it ignores the EXIF
+        orientation); a photo whose stored size is its camera's size turned by 90 degrees is
+        turned by its EXIF orientation instead (a model made from the photos as displayed).
 
     Raises
     ------
@@ -776,7 +891,7 @@ def load_scene(
         if file.suffix.lower() not in IMAGE_EXTENSIONS:
             raise SceneError(file, f"unsupported image type {file.suffix!r} (supported: {', '.join(IMAGE_EXTENSIONS)})")
         camera = cameras[name]
-        image, saturation = read_image(file)
+        image, saturation = read_image_for_size(file, width=camera.width, height=camera.height)
         h, w = image.shape[:2]
         if (w, h) != (camera.width, camera.height):
             raise SceneError(file, f"image is {w}x{h} pixels but its COLMAP camera is {camera.width}x{camera.height}")
@@ -1088,7 +1203,7 @@ def _write_result(result: Decomposition, folder: Path) -> None:
 
 def _read_raw(path: Path, channels: int) -> np.ndarray:
     """A result layer as stored (float32, or uint8 for PNG labels), ``(H, W)`` for one channel."""
-    data = _read_stored(path, "result file not found")
+    data, _ = _read_stored(path, "result file not found")
     if data.shape[2] != channels:
         raise SceneError(path, f"expected {channels} channels, found {data.shape[2]}")
     return data[..., 0] if channels == 1 else data
@@ -1146,6 +1261,8 @@ def load_decomposition(folder: os.PathLike | str) -> Decomposition:
             sky=sky,
             horizon_plane=data.get("horizon_plane"),
             envmap=envmap,
+            horizon_evidence=data.get("horizon_evidence"),
+            exposure=None if data.get("exposure") is None else ViewGains.from_dict(data["exposure"]),
         )
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, SceneError):

@@ -42,6 +42,7 @@ import numpy as np
 from ._validation import config_or_default
 from .correspondence import Correspondences
 from .env_refine import EnvRefineConfig, Step4Result, refine
+from .exposure import ExposureConfig, compensate, estimate_view_gains, restore_units
 from .matting import MattingConfig, intrinsic_layers
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
@@ -64,6 +65,10 @@ class Config:
 
     Parameters
     ----------
+    exposure : ExposureConfig
+        Per-view exposure and white-balance gains, estimated from the proxy points the views
+        share and compensated before Step 1 when they differ from 1 (beyond the paper,
+        :mod:`mvintrinsic.exposure`).
     step1 : Step1Config
         Environment map, sky model and ray-traced shading (Sec. 4).
     sun : SunConfig
@@ -91,6 +96,7 @@ class Config:
     """
 
     step1: Step1Config = field(default_factory=Step1Config)
+    exposure: ExposureConfig = field(default_factory=ExposureConfig)
     sun: SunConfig = field(default_factory=SunConfig)
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     shadow: ShadowConfig = field(default_factory=ShadowConfig)
@@ -104,7 +110,8 @@ class Config:
     def __post_init__(self) -> None:
         if not isinstance(self.step1, Step1Config):
             raise TypeError(f"step1 must be a Step1Config, got {type(self.step1).__name__}")
-        for name, kind in (("sun", SunConfig), ("segmentation", SegmentationConfig), ("shadow", ShadowConfig),
+        for name, kind in (("exposure", ExposureConfig), ("sun", SunConfig), ("segmentation", SegmentationConfig),
+                           ("shadow", ShadowConfig),
                            ("multiview", MultiViewShadowConfig), ("matting", MattingConfig),
                            ("env_refine", EnvRefineConfig)):
             if not isinstance(getattr(self, name), kind):
@@ -129,7 +136,8 @@ class Config:
         return _from_dict(cls, data, "config")
 
 
-_NESTED = {"step1": Step1Config, "sun": SunConfig, "sky": SkyConfig, "segmentation": SegmentationConfig,
+_NESTED = {"step1": Step1Config, "exposure": ExposureConfig, "sun": SunConfig, "sky": SkyConfig,
+           "segmentation": SegmentationConfig,
            "shadow": ShadowConfig, "multiview": MultiViewShadowConfig, "matting": MattingConfig,
            "env_refine": EnvRefineConfig}
 
@@ -388,8 +396,15 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     config = config_or_default(config, Config)
     timings: dict[str, float] = {}
 
-    logger.info("step 1: environment map, sky model, S_sky, S_ind, ~v on %d proxy vertices", len(scene.proxy.vertices))
     tracer = tracer if tracer is not None else Tracer(scene.proxy)
+    start = time.perf_counter()
+    gains = estimate_view_gains(scene.views, tracer, config=config.exposure, rng=config.seed)
+    if gains.applied:
+        logger.info("exposure: compensating per-view gains (%s)", gains.reason)
+        scene = compensate(scene, gains)
+    timings["exposure"] = time.perf_counter() - start
+
+    logger.info("step 1: environment map, sky model, S_sky, S_ind, ~v on %d proxy vertices", len(scene.proxy.vertices))
     s1 = step1(scene, config=config.step1, tracer=tracer, rng=config.seed, progress=progress)
     timings.update({f"step1.{k}": v for k, v in s1.timings.items()})
 
@@ -422,11 +437,14 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
             timings["step4"] = time.perf_counter() - start
             timings.update({f"step4.{k}": v for k, v in refined.timings.items()})
 
+    if gains.applied:  # the shading back in each photo's units, so that R * S reproduces it
+        layers = {stem: restore_units(layer, gains.of(stem)) for stem, layer in layers.items()}
     sky = s1.sky_model
     lighting = Lighting(
         sun=scene.sun, sun_radiance=calibration.sun_radiance, up=scene.up,
         sky=SkyParameters(model="preetham", turbidity=float(sky.turbidity), scale=np.asarray(sky.scale),
                           residual=float(sky.residual)),
-        horizon_plane=s1.horizon.plane, envmap=s1.environment.radiance,
+        horizon_plane=s1.horizon.plane, envmap=s1.environment.radiance, exposure=gains,
+        horizon_evidence=s1.horizon.evidence,
     )
     return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config.to_dict())

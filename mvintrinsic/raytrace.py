@@ -29,7 +29,7 @@ from ._validation import describe, is_real
 from .camera import Camera
 from .image_model import clamped_cosine
 from .scene import Proxy, Scene, View
-from .skymodel import EnvironmentMap, HorizonPlane, SkyConfig, SkyModel, estimate_environment, horizon_plane
+from .skymodel import EnvironmentMap, HorizonPlane, SkyConfig, SkyModel, estimate_environment, find_horizon
 
 __all__ = [
     "PointShading",
@@ -52,6 +52,7 @@ __all__ = [
     "triangle_scene",
     "tangent_frames",
     "vertex_normals",
+    "vertex_observations",
     "vertex_radiance",
     "voxel_subsample",
 ]
@@ -601,29 +602,27 @@ def depth_map(camera: Camera, tracer: Tracer) -> np.ndarray:
     return tracer.intersect(camera.center, camera.pixel_rays()).t.reshape(camera.shape)
 
 
-def vertex_radiance(
+def vertex_observations(
     views: Sequence[View],
     tracer: Tracer,
     *,
     depth_tolerance: float = 0.02,
     depths: Sequence[np.ndarray] | None = None,
     progress: bool = False,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Median observed radiance of every proxy vertex (paper Sec. 4).
+) -> np.ndarray:
+    """What every view sees of every proxy vertex: the samples :func:`vertex_radiance` takes the
+    median of.
 
     Each vertex is projected into every view; it counts as seen when it lies in the image, in
     front of the camera, faces it, its pixel is valid and its distance is within
     ``depth_tolerance`` (relative) of the proxy's depth map at that pixel (occlusion test). Its
-    radiance there is the bilinearly interpolated image value; the estimate is the per-channel
-    median over the views that see it ("We assign the median of the gathered values as the
-    approximate diffuse radiance of the vertex").
+    value there is the bilinearly interpolated image value.
 
     Returns
     -------
-    radiance : (N, 3) float32
-        NaN for vertices no view sees.
-    count : (N,) int32
-        Number of views that see each vertex.
+    (V, N, 3) float32
+        Per view (in the order given) and vertex, linear RGB in the image's units; NaN where the
+        view does not see the vertex.
     """
     from tqdm.auto import tqdm
 
@@ -645,6 +644,32 @@ def vertex_radiance(
         idx, col, row = idx[seen], col[seen], row[seen]
         image = np.where(view.mask[..., None], view.image, 0.0).astype(np.float32)
         samples[k, idx] = _bilinear(image, pixels[idx, 0] - 0.5, pixels[idx, 1] - 0.5)
+    return samples
+
+
+def vertex_radiance(
+    views: Sequence[View],
+    tracer: Tracer,
+    *,
+    depth_tolerance: float = 0.02,
+    depths: Sequence[np.ndarray] | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Median observed radiance of every proxy vertex (paper Sec. 4).
+
+    The samples are those of :func:`vertex_observations`; the estimate is their per-channel
+    median over the views that see the vertex ("We assign the median of the gathered values as
+    the approximate diffuse radiance of the vertex").
+
+    Returns
+    -------
+    radiance : (N, 3) float32
+        NaN for vertices no view sees.
+    count : (N,) int32
+        Number of views that see each vertex.
+    """
+    samples = vertex_observations(views, tracer, depth_tolerance=depth_tolerance, depths=depths, progress=progress)
+    n = samples.shape[1]
     count = np.sum(np.isfinite(samples[..., 0]), axis=0).astype(np.int32)
     radiance = np.full((n, 3), np.nan, dtype=np.float32)
     seen = count > 0
@@ -1000,7 +1025,8 @@ def step1(
 ) -> Step1Result:
     """Step 1 of the paper (Sec. 4): environment map, sky model, ``S_sky``, ``S_ind`` and ``~v``.
 
-    1. horizon: the main horizontal plane of the proxy (RANSAC);
+    1. horizon: the main horizontal plane of the proxy (RANSAC), or, when it has none, the
+       scene's up vector (:func:`~mvintrinsic.skymodel.find_horizon`, ``SkyConfig.horizon``);
     2. coverage: camera rays of every view against the proxy; the valid pixels they miss are
        splatted into a partial environment map (median over views);
     3. sky: colour sky detector above the horizon, Preetham sky fit (Eq. 4), completion of the
@@ -1037,7 +1063,8 @@ def step1(
     timings["tracer"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    horizon = horizon_plane(scene.proxy.vertices, up=scene.up, config=config.sky, rng=gen)
+    horizon = find_horizon(scene.proxy.vertices, up=scene.up, config=config.sky, rng=gen,
+                           camera_centers=np.stack([v.camera.center for v in scene.views]))
     timings["horizon"] = time.perf_counter() - start
 
     start = time.perf_counter()

@@ -1652,6 +1652,9 @@ class Relighter:
         self.stems = scene.stems
         self.up, self.sun = up, capture
         self.sun_radiance = lighting.sun_radiance
+        # L_sun in each view's own units (its exposure gain, mvintrinsic.exposure), float32 (3,)
+        self._radiance = {stem: (lighting.sun_radiance * lighting.gain(stem)).astype(np.float32)
+                          for stem in decomposition.layers}
         self._batch = batch
         timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0}
         receivers, normals, hits, known, cosine = {}, {}, {}, {}, {}
@@ -1855,9 +1858,9 @@ class Relighter:
         pixel saw the sun (``v_sun > 0``), else ``L_sun max(0, n.d')``: the first two terms and
         the floor do not depend on the new sun ``d'``.
         """
-        radiance = np.asarray(self.sun_radiance, dtype=np.float64)
         self._shading_terms = {}
         for stem in self.stems:
+            radiance = self._radiance[stem].astype(np.float64)
             s_sun = self.decomposition.layers[stem].sun_shading.astype(np.float64)
             saw_sun = (self.visibility[stem] > 0)[..., None]
             # In full shadow base 0 and floor -inf leave L_sun max(0, n.d') alone.
@@ -1878,7 +1881,6 @@ class Relighter:
         """
         direction = as_sun_direction(sun, up=self.up)
         new_vis = self.visibility_at(direction) if visibility is None else self._check_visibility(visibility)
-        radiance = np.asarray(self.sun_radiance, dtype=np.float32)
         d32 = direction.astype(np.float32)
         new_cosine = {}
         for stem in self.stems:
@@ -1898,7 +1900,7 @@ class Relighter:
         out = {}
         for stem in self.stems:
             _, base, floor, _, _ = self._shading_terms[stem]
-            s_sun = new_cosine[stem][..., None] * radiance
+            s_sun = new_cosine[stem][..., None] * self._radiance[stem]
             s_sun += base
             np.maximum(s_sun, floor, out=s_sun)
             out[stem] = (new_vis[stem], s_sun, sky_factor[stem], float(indirect_factor))

@@ -23,7 +23,7 @@ from ._validation import as_array, as_unit_vector, describe
 from ._version import __version__
 from .scene import Sun
 
-__all__ = ["SHADOW_LABELS", "Decomposition", "IntrinsicLayers", "Lighting", "SkyParameters"]
+__all__ = ["SHADOW_LABELS", "Decomposition", "IntrinsicLayers", "Lighting", "SkyParameters", "ViewGains"]
 
 #: 8-bit codes of ``IntrinsicLayers.shadow_labels``.
 SHADOW_LABELS: dict[str, int] = {"shadow": 0, "undecided": 128, "lit": 255}
@@ -114,6 +114,102 @@ class IntrinsicLayers:
 
 
 @dataclass(frozen=True, eq=False)
+class ViewGains:
+    """Per-view exposure and white-balance gains of the photographs (:mod:`mvintrinsic.exposure`).
+
+    A view's pixel value at a surface point is ``gain * L`` per channel, with ``L`` the point's
+    radiance in the scene's reference units (the geometric mean of the views' gains is 1 per
+    channel). The decomposition divides each image by its gain, and multiplies its shading
+    layers back by it, so that one ``L_sun`` and one reflectance serve all views while
+    ``reflectance * shading`` still reproduces each photograph.
+
+    Parameters
+    ----------
+    stems : tuple of str
+        The views, in scene order.
+    estimated : (V, 3) float64
+        Estimated gains, positive, geometric mean 1 per channel over the views that share points.
+    applied : bool
+        Whether the decomposition compensated the images by ``estimated`` (else by 1).
+    shared : (V,) int64
+        Proxy points each view shares with at least one other view (the evidence of its gain).
+    residual : (V, 3) float64
+        Robust spread (1.4826 times the median absolute deviation) of the log residuals of each
+        view's samples after the fit: how far the photos disagree beyond a gain (noise, JPEG,
+        proxy errors, non-Lambertian surfaces).
+    reason : str
+        Why the gains were or were not applied.
+    """
+
+    stems: tuple[str, ...]
+    estimated: np.ndarray
+    applied: bool
+    shared: np.ndarray
+    residual: np.ndarray
+    reason: str = ""
+
+    def __post_init__(self) -> None:
+        stems = tuple(self.stems)
+        if not stems or not all(isinstance(s, str) and s for s in stems) or len(set(stems)) != len(stems):
+            raise ValueError(f"stems must be distinct non-empty strings, got {stems!r}")
+        n = len(stems)
+        estimated = as_array(self.estimated, "estimated", shape=(n, 3), dtype=np.float64)
+        if (estimated <= 0).any():
+            raise ValueError("estimated gains must be positive")
+        shared = as_array(self.shared, "shared", shape=(n,), dtype=np.int64)
+        residual = as_array(self.residual, "residual", shape=(n, 3), dtype=np.float64, finite=False)
+        if not isinstance(self.applied, bool):
+            raise TypeError(f"applied must be a bool, got {describe(self.applied)}")
+        for name, array in (("estimated", estimated), ("shared", shared), ("residual", residual)):
+            array = np.array(array)
+            array.flags.writeable = False
+            object.__setattr__(self, name, array)
+        object.__setattr__(self, "stems", stems)
+        object.__setattr__(self, "reason", str(self.reason))
+
+    @property
+    def gains(self) -> np.ndarray:
+        """The gains the decomposition used: ``estimated`` if applied, else ones; (V, 3) float64."""
+        return self.estimated.copy() if self.applied else np.ones((len(self.stems), 3))
+
+    def of(self, stem: str) -> np.ndarray:
+        """The gain used for view ``stem``, (3,) float64."""
+        if stem not in self.stems:
+            raise KeyError(f"no view named {stem!r}; views are {list(self.stems)}")
+        return self.gains[self.stems.index(stem)]
+
+    @classmethod
+    def identity(cls, stems: tuple[str, ...], reason: str = "not estimated") -> ViewGains:
+        """Gains of 1 for every view, not applied."""
+        n = len(tuple(stems))
+        return cls(tuple(stems), np.ones((n, 3)), False, np.zeros(n, np.int64), np.full((n, 3), np.nan), reason)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``exposure`` entry of ``lighting.json``."""
+        return {
+            "applied": self.applied,
+            "reason": self.reason,
+            "gains": {s: g.tolist() for s, g in zip(self.stems, self.gains, strict=True)},
+            "estimated": {s: g.tolist() for s, g in zip(self.stems, self.estimated, strict=True)},
+            "shared_points": {s: int(c) for s, c in zip(self.stems, self.shared, strict=True)},
+            "residual": {s: [None if not np.isfinite(x) else float(x) for x in r]
+                         for s, r in zip(self.stems, self.residual, strict=True)},
+        }
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ViewGains:
+        """Inverse of :meth:`to_dict`."""
+        stems = tuple(data["estimated"])
+        residual = [[np.nan if x is None else x for x in data["residual"][s]] for s in stems]
+        return cls(stems, [data["estimated"][s] for s in stems], bool(data["applied"]),
+                   [data["shared_points"][s] for s in stems], residual, data.get("reason", ""))
+
+    def __repr__(self) -> str:
+        spread = float(np.abs(np.log(self.estimated)).max()) if len(self.stems) else 0.0
+        return f"ViewGains({len(self.stems)} views, applied={self.applied}, max |log gain| {spread:.3f})"
+
+
+@dataclass(frozen=True, eq=False)
 class SkyParameters:
     """Summary of the fitted sky model (paper Eq. 4), as written to ``lighting.json``.
 
@@ -182,6 +278,12 @@ class Lighting:
         ``(a, b, c)`` unit.
     envmap : (He, 2 He, 3) float32, optional
         Completed environment map, equirectangular as in ``docs/conventions.md``.
+    horizon_evidence : str, optional
+        What placed the horizon: ``"proxy plane"`` (the paper's main horizontal plane of the
+        proxy) or ``"up"`` (the scene's up vector, when the proxy has no clear ground plane).
+    exposure : ViewGains, optional
+        Per-view exposure and white-balance gains; the layers of view ``k`` are in that view's
+        units, ``S_sun = gain_k * sun_radiance * max(0, cos w_sun)``. None: every gain 1.
     """
 
     sun: Sun
@@ -190,6 +292,8 @@ class Lighting:
     sky: SkyParameters | None = None
     horizon_plane: np.ndarray | None = None
     envmap: np.ndarray | None = None
+    horizon_evidence: str | None = None
+    exposure: ViewGains | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.sun, Sun):
@@ -211,6 +315,14 @@ class Lighting:
             if envmap.shape[1] != 2 * envmap.shape[0]:
                 raise ValueError(f"envmap must have shape (He, 2*He, 3), got shape {envmap.shape}")
             object.__setattr__(self, "envmap", envmap)
+        if self.horizon_evidence is not None and self.horizon_evidence not in ("proxy plane", "up"):
+            raise ValueError(f"horizon_evidence must be 'proxy plane', 'up' or None, got {self.horizon_evidence!r}")
+        if self.exposure is not None and not isinstance(self.exposure, ViewGains):
+            raise TypeError(f"exposure must be ViewGains or None, got {describe(self.exposure)}")
+
+    def gain(self, stem: str) -> np.ndarray:
+        """Exposure gain of view ``stem`` (ones without :attr:`exposure`), (3,) float64."""
+        return np.ones(3) if self.exposure is None else self.exposure.of(stem)
 
     def to_dict(self) -> dict[str, Any]:
         """The lighting keys of ``lighting.json`` (the envmap is written separately)."""
@@ -221,6 +333,8 @@ class Lighting:
             "sky": None if self.sky is None else self.sky.to_dict(),
             "up": self.up.tolist(),
             "horizon_plane": None if self.horizon_plane is None else self.horizon_plane.tolist(),
+            "horizon_evidence": self.horizon_evidence,
+            "exposure": None if self.exposure is None else self.exposure.to_dict(),
         }
 
 

@@ -69,7 +69,9 @@ __all__ = [
     "envmap_directions",
     "estimate_environment",
     "fill_by_diffusion",
+    "find_horizon",
     "fit_sky",
+    "horizon_from_up",
     "horizon_plane",
     "horizontal_frame",
     "partial_environment_map",
@@ -155,6 +157,13 @@ class SkyConfig:
         The plane must be a real surface, not a slice through walls: its point density within
         ``horizon_inlier_distance`` must be at least this many times the density in the slabs
         from 1 to 4 inlier distances on either side. A slice through walls scores ~1.
+    horizon : {"auto", "plane", "up"}
+        What places the horizon. ``"plane"``: the paper's main horizontal plane of the proxy
+        (RANSAC), an error when the proxy has none. ``"up"``: the scene's ``up`` vector, through
+        the proxy's lowest points (:func:`horizon_from_up`); the cameras and the sky only need
+        its normal, and real multi-view-stereo meshes often lack a dense ground (a facade, a
+        roof cap). ``"auto"`` (default): the plane when RANSAC finds one, else ``"up"``; the
+        evidence used is recorded in the result (``horizon_evidence`` of ``lighting.json``).
     """
 
     envmap_height: int = 64
@@ -174,8 +183,11 @@ class SkyConfig:
     horizon_iterations: int = 500
     horizon_max_points: int = 20_000
     horizon_min_contrast: float = 3.0
+    horizon: str = "auto"
 
     def __post_init__(self) -> None:
+        if self.horizon not in ("auto", "plane", "up"):
+            raise ValueError(f"horizon must be 'auto', 'plane' or 'up', got {self.horizon!r}")
         for name in ("envmap_height", "max_iter", "min_texels", "horizon_iterations", "horizon_max_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -368,11 +380,18 @@ class HorizonPlane:
         Fraction of the vertices within ``horizon_inlier_distance`` of the plane.
     n_inliers : int
         Their number.
+    evidence : {"proxy plane", "up"}
+        What placed it: RANSAC on the proxy (:func:`horizon_plane`) or the scene's up vector
+        (:func:`horizon_from_up`).
+    reason : str
+        Why ``"up"`` was used (the RANSAC failure), empty otherwise.
     """
 
     plane: np.ndarray
     inlier_fraction: float
     n_inliers: int
+    evidence: str = "proxy plane"
+    reason: str = ""
 
     def __post_init__(self) -> None:
         plane = np.array(as_array(self.plane, "plane", shape=(4,), dtype=np.float64))
@@ -383,6 +402,8 @@ class HorizonPlane:
         object.__setattr__(self, "plane", plane)
         object.__setattr__(self, "inlier_fraction", float(self.inlier_fraction))
         object.__setattr__(self, "n_inliers", int(self.n_inliers))
+        if self.evidence not in ("proxy plane", "up"):
+            raise ValueError(f"evidence must be 'proxy plane' or 'up', got {self.evidence!r}")
 
     @property
     def normal(self) -> np.ndarray:
@@ -499,6 +520,78 @@ def horizon_plane(
             f"(need {config.horizon_min_contrast}); the proxy has no ground plane"
         )
     return HorizonPlane(plane=plane, inlier_fraction=n_in / len(points), n_inliers=n_in)
+
+
+def horizon_from_up(
+    vertices: object,
+    *,
+    up: object = _Z_UP,
+    camera_centers: object | None = None,
+    config: SkyConfig | None = None,
+    reason: str = "",
+) -> HorizonPlane:
+    """The horizon plane from the scene's up vector, for a proxy without a clear ground.
+
+    The normal is ``up``; the plane passes through the 1st percentile of the proxy's heights
+    along ``up``, or 1.6 m (eye height) below the lowest camera if that is lower. Only the normal
+    matters to Step 1 (the sky lies above the horizon, :func:`estimate_environment`); the offset
+    is a best guess of the ground level, reported in the result.
+
+    Parameters
+    ----------
+    vertices : (N, 3) array_like
+        Proxy vertices, world frame, metres.
+    up : (3,) array_like, optional
+        World up vector, default +Z.
+    camera_centers : (M, 3) array_like, optional
+        Camera centres, world frame.
+    config : SkyConfig, optional
+        ``horizon_inlier_distance`` counts the vertices near the plane.
+    reason : str, optional
+        Why the proxy's plane was not used; kept in :attr:`HorizonPlane.reason`.
+
+    Returns
+    -------
+    HorizonPlane
+        With ``evidence="up"``.
+    """
+    config = config_or_default(config, SkyConfig)
+    points = as_array(vertices, "vertices", shape=(None, 3), dtype=np.float64)
+    if len(points) < 1:
+        raise ValueError("vertices must hold at least 1 point")
+    up = as_unit_vector(up, "up")
+    heights = points @ up
+    ground = float(np.percentile(heights, 1.0))
+    if camera_centers is not None:
+        centers = as_array(camera_centers, "camera_centers", shape=(None, 3), dtype=np.float64)
+        if len(centers):
+            ground = min(ground, float((centers @ up).min()) - 1.6)
+    plane = np.concatenate([up, [-ground]])
+    n_in = int((np.abs(heights - ground) <= config.horizon_inlier_distance).sum())
+    return HorizonPlane(plane=plane, inlier_fraction=n_in / len(points), n_inliers=n_in, evidence="up",
+                        reason=reason)
+
+
+def find_horizon(
+    vertices: object,
+    *,
+    up: object = _Z_UP,
+    camera_centers: object | None = None,
+    config: SkyConfig | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> HorizonPlane:
+    """The horizon by the rule of ``config.horizon``: the proxy's plane, the up vector, or the
+    first that works (``"auto"``). See :func:`horizon_plane` and :func:`horizon_from_up`."""
+    config = config_or_default(config, SkyConfig)
+    if config.horizon == "up":
+        return horizon_from_up(vertices, up=up, camera_centers=camera_centers, config=config,
+                               reason="SkyConfig.horizon='up'")
+    try:
+        return horizon_plane(vertices, up=up, config=config, rng=rng)
+    except ValueError as exc:
+        if config.horizon == "plane" or not str(exc).startswith("vertices: no near-horizontal plane"):
+            raise
+        return horizon_from_up(vertices, up=up, camera_centers=camera_centers, config=config, reason=str(exc))
 
 
 # ------------------------------------------------------------------------------------------------

@@ -32,7 +32,7 @@ from typing import Any
 import numpy as np
 
 from ._version import __version__
-from .io import ResultFolderError, SceneError, load_scene
+from .io import DEFAULT_MAX_SIZE, ResultFolderError, SceneError, load_scene
 from .scene import Scene
 from .skymodel import SkyFitError
 from .sun_calibration import SunCalibrationError
@@ -129,6 +129,20 @@ def demo_scene_path() -> Path:
     from importlib.resources import files
 
     return Path(str(files("mvintrinsic") / "data" / "demo"))
+
+
+MAX_SIZE_HELP = (f"downscale larger photos to this longer side in pixels (default {DEFAULT_MAX_SIZE}: a 12 MP "
+                 "photo then decomposes within 4 GB); 'full' for full resolution")
+
+
+def _max_size(text: str) -> int | None:
+    """``--max-size``: an integer (checked by load_scene, which names max_size) or 'full'."""
+    if text.strip().lower() == "full":
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of pixels or 'full', got {text!r}") from None
 
 
 def _print_decomposition(result, scene: Scene) -> None:
@@ -414,7 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     info = commands.add_parser("info", help="validate a scene folder and summarise it")
     info.add_argument("scene", type=Path, help="scene folder (images/, sparse/, proxy.ply, scene.json)")
-    info.add_argument("--max-size", type=int, default=None, help="downscale images to this longer side")
+    info.add_argument("--max-size", type=_max_size, default=DEFAULT_MAX_SIZE, help=MAX_SIZE_HELP)
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(run=_cmd_info)
 
@@ -429,7 +443,7 @@ def build_parser() -> argparse.ArgumentParser:
     dec.add_argument("out", type=Path, help="result folder to write (absent, empty, or a previous result)")
     dec.add_argument("--config", type=Path, default=None,
                      help="JSON or TOML file with (part of) the configuration, e.g. {\"sun\": {\"walk\": 20}}")
-    dec.add_argument("--max-size", type=int, default=None, help="downscale images to this longer side")
+    dec.add_argument("--max-size", type=_max_size, default=DEFAULT_MAX_SIZE, help=MAX_SIZE_HELP)
     dec.add_argument("--views", nargs="+", default=None, metavar="STEM", help="decompose only these views")
     dec.add_argument("--steps", type=int, choices=(2, 3, 4), default=None,
                      help="last step of the paper to run (default 4; overrides --config)")

@@ -43,6 +43,7 @@ from .sun_position import sun_from_clicks, sun_from_time
 
 __all__ = [
     "RESULT_MARKER",
+    "DEFAULT_MAX_SIZE",
     "IMAGE_EXTENSIONS",
     "ResultFolderError",
     "SceneError",
@@ -61,6 +62,10 @@ __all__ = [
     "write_json",
     "write_proxy",
 ]
+
+#: Default longer side (pixels) to which :func:`load_scene` downscales larger photos: one 12 MP
+#: view then decomposes within 4 GB (benchmarks/results/memory_12mp.json, docs/real_capture.md).
+DEFAULT_MAX_SIZE = 1400
 
 #: Image file extensions load_scene accepts (case-insensitive).
 IMAGE_EXTENSIONS = (".exr", ".tif", ".tiff", ".png", ".jpg", ".jpeg")
@@ -813,7 +818,7 @@ def _resize(image: np.ndarray, mask: np.ndarray, width: int, height: int) -> tup
 def load_scene(
     path: os.PathLike | str,
     *,
-    max_size: int | None = None,
+    max_size: int | None = DEFAULT_MAX_SIZE,
     views: Sequence[str] | None = None,
     on_invalid: str = "raise",
     progress: bool = False,
@@ -824,9 +829,11 @@ def load_scene(
     ----------
     path : path-like
         Scene folder with ``images/``, ``sparse/``, ``proxy.ply`` and ``scene.json``.
-    max_size : int, optional
+    max_size : int or None, optional
         Downscale images (area averaging) so that their longer side is at most ``max_size`` pixels;
-        cameras are scaled to match (:meth:`Camera.scaled`). Sun clicks refer to full-size pixels.
+        cameras are scaled to match (:meth:`Camera.scaled`). Default :data:`DEFAULT_MAX_SIZE`
+        (1400): larger photos are downscaled, so that a 12 MP view stays within 4 GB (the matting
+        and the multi-view labelling hold several arrays per pixel). ``None``: full resolution. Sun clicks refer to full-size pixels.
     views : sequence of str, optional
         Stems (or image names) of the views to load, in the order given. Default: all registered
         images, sorted by name.

@@ -189,3 +189,16 @@ def test_the_imitation_decomposes_with_default_settings(capture, tmp_path):
         layers = result.layers[view.stem]
         known = (layers.reflectance > 0).any(axis=-1)
         np.testing.assert_allclose(images[view.stem][known], layers.reconstruct()[known], rtol=1e-3, atol=1e-5)
+
+
+def test_large_photos_are_downscaled_by_default():
+    import argparse
+    import inspect
+
+    from mvintrinsic.cli import _max_size
+    from mvintrinsic.io import DEFAULT_MAX_SIZE
+
+    assert inspect.signature(load_scene).parameters["max_size"].default == DEFAULT_MAX_SIZE == 1400
+    assert _max_size("full") is None and _max_size("800") == 800
+    with pytest.raises(argparse.ArgumentTypeError, match="'full'"):
+        _max_size("big")

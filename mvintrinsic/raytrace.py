@@ -1064,7 +1064,8 @@ def step1(
 
     start = time.perf_counter()
     horizon = find_horizon(scene.proxy.vertices, up=scene.up, config=config.sky, rng=gen,
-                           camera_centers=np.stack([v.camera.center for v in scene.views]))
+                           camera_centers=np.stack([v.camera.center for v in scene.views]),
+                           camera_ups=np.stack([-v.camera.rotation[1] for v in scene.views]))  # -y axis, world
     timings["horizon"] = time.perf_counter() - start
 
     start = time.perf_counter()

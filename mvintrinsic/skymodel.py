@@ -43,6 +43,7 @@ References
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
@@ -527,6 +528,7 @@ def horizon_from_up(
     *,
     up: object = _Z_UP,
     camera_centers: object | None = None,
+    camera_ups: object | None = None,
     config: SkyConfig | None = None,
     reason: str = "",
 ) -> HorizonPlane:
@@ -545,6 +547,11 @@ def horizon_from_up(
         World up vector, default +Z.
     camera_centers : (M, 3) array_like, optional
         Camera centres, world frame.
+    camera_ups : (M, 3) array_like, optional
+        The cameras' up axes in the world frame (``-y`` of the camera, the top of the photo).
+        Photos are taken roughly upright, so their mean should lie near ``up``; the angle is
+        added to :attr:`HorizonPlane.reason`, and a warning is given above 60 degrees (``up`` in
+        scene.json is then probably wrong: the sky would be looked for in the wrong place).
     config : SkyConfig, optional
         ``horizon_inlier_distance`` counts the vertices near the plane.
     reason : str, optional
@@ -568,6 +575,15 @@ def horizon_from_up(
             ground = min(ground, float((centers @ up).min()) - 1.6)
     plane = np.concatenate([up, [-ground]])
     n_in = int((np.abs(heights - ground) <= config.horizon_inlier_distance).sum())
+    if camera_ups is not None:
+        ups = as_array(camera_ups, "camera_ups", shape=(None, 3), dtype=np.float64)
+        mean = ups.sum(axis=0)
+        if len(ups) and np.linalg.norm(mean) > 0:
+            angle = math.degrees(math.acos(float(np.clip(mean @ up / np.linalg.norm(mean), -1.0, 1.0))))
+            reason = f"{reason}; the cameras' mean up axis is {angle:.0f}° from up".lstrip("; ")
+            if angle > 60.0:
+                warnings.warn(f"up {up.tolist()} is {angle:.0f}° from the cameras' mean up axis: the horizon and "
+                              "the sky detector rely on it (check 'up' in scene.json)", UserWarning, stacklevel=2)
     return HorizonPlane(plane=plane, inlier_fraction=n_in / len(points), n_inliers=n_in, evidence="up",
                         reason=reason)
 
@@ -577,6 +593,7 @@ def find_horizon(
     *,
     up: object = _Z_UP,
     camera_centers: object | None = None,
+    camera_ups: object | None = None,
     config: SkyConfig | None = None,
     rng: np.random.Generator | int | None = None,
 ) -> HorizonPlane:
@@ -584,14 +601,15 @@ def find_horizon(
     first that works (``"auto"``). See :func:`horizon_plane` and :func:`horizon_from_up`."""
     config = config_or_default(config, SkyConfig)
     if config.horizon == "up":
-        return horizon_from_up(vertices, up=up, camera_centers=camera_centers, config=config,
+        return horizon_from_up(vertices, up=up, camera_centers=camera_centers, camera_ups=camera_ups, config=config,
                                reason="SkyConfig.horizon='up'")
     try:
         return horizon_plane(vertices, up=up, config=config, rng=rng)
     except ValueError as exc:
         if config.horizon == "plane" or not str(exc).startswith("vertices: no near-horizontal plane"):
             raise
-        return horizon_from_up(vertices, up=up, camera_centers=camera_centers, config=config, reason=str(exc))
+        return horizon_from_up(vertices, up=up, camera_centers=camera_centers, camera_ups=camera_ups, config=config,
+                               reason=str(exc))
 
 
 # ------------------------------------------------------------------------------------------------

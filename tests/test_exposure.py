@@ -140,6 +140,10 @@ def test_horizon_from_up_when_the_proxy_has_no_ground():
     assert find_horizon(np.vstack([wall, ground]), rng=0).evidence == "proxy plane"
     with pytest.raises(ValueError, match="horizon must be"):
         SkyConfig(horizon="sky")
+    upright = horizon_from_up(wall, camera_ups=[[0.0, 0.3, 0.95], [0.0, -0.3, 0.95]])
+    assert "mean up axis is 0° from up" in upright.reason
+    with pytest.warns(UserWarning, match="90° from the cameras' mean up axis"):
+        horizon_from_up(wall, camera_ups=[[1.0, 0.0, 0.0]])
 
 
 @pytest.fixture(scope="module")
@@ -170,6 +174,10 @@ def test_the_imitation_decomposes_with_default_settings(capture, tmp_path):
     lighting = result.lighting
     assert lighting.horizon_evidence == "up"
     assert lighting.exposure.applied
+    from mvintrinsic.raytrace import step1
+
+    reason = step1(scene, rng=0).horizon.reason  # the demo's cameras look slightly down: near up
+    assert "no near-horizontal plane" in reason and int(reason.split("mean up axis is ")[1].split("°")[0]) < 30
     truth = np.array([record["gains"][s] for s in lighting.exposure.stems])
     np.testing.assert_allclose(lighting.exposure.estimated / truth, 1.0, atol=CAPTURE_GAIN_TOL)
     for view in scene.views:  # R * S reproduces each photo in its own units

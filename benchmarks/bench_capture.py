@@ -20,6 +20,11 @@ Per run: reflectance and shading LMSE, shadow BER, reconstruction PSNR
 evidence, the estimated gains against the applied ones (both normalised to a geometric mean of 1:
 max and mean of ``|estimated / applied - 1|``; for ``capture_no_gains`` the gains are 1, so the
 figure is how far the photos are from one exposure), and seconds. ``--smoke`` runs the demo only (CI).
+
+``--ablation`` adds the imitation's changes one at a time, each with the default configuration:
+``jpeg`` (8-bit sRGB JPEG only: no gains, no portrait view, ground kept, no cap), ``jpeg_no_ground``
+(and the ground removed), ``jpeg_no_ground_cap`` (and the false cap); ``capture`` adds the gains
+and the portrait view on top.
 """
 
 from __future__ import annotations
@@ -72,14 +77,27 @@ def run(folder: Path, work: Path, config: Config) -> dict:
     return entry
 
 
-def bench_scene(folder: Path, work: Path) -> dict:
+#: the imitation's changes added one at a time (--ablation): imitate_capture arguments
+ABLATION = {
+    "jpeg": {"exposure_stops": 0.0, "white_balance": 0.0, "portrait_view": None, "ground_band": None,
+             "false_cap": False},
+    "jpeg_no_ground": {"exposure_stops": 0.0, "white_balance": 0.0, "portrait_view": None, "false_cap": False},
+    "jpeg_no_ground_cap": {"exposure_stops": 0.0, "white_balance": 0.0, "portrait_view": None},
+}
+
+
+def bench_scene(folder: Path, work: Path, *, ablation: bool = False) -> dict:
     capture = work / f"{folder.name}_capture"
     record = imitate_capture(folder, capture, seed=0, overwrite=True)
     scene = load_scene(folder)
     out = {"views": len(scene.views), "size": "x".join(map(str, scene.views[0].shape[::-1])),
            "imitation": {k: record[k] for k in ("global_scale", "jpeg_quality", "portrait_view", "proxy")}}
-    runs = {"clean": (folder, Config()), "capture": (capture, Config()),
-            "capture_no_gains": (capture, Config(exposure=ExposureConfig(method="none")))}
+    runs = {"clean": (folder, Config())}
+    if ablation:
+        for name, kwargs in ABLATION.items():
+            imitate_capture(folder, work / name, seed=0, overwrite=True, **kwargs)
+            runs[name] = (work / name, Config())
+    runs.update(capture=(capture, Config()), capture_no_gains=(capture, Config(exposure=ExposureConfig(method="none"))))
     for name, (source, config) in runs.items():
         entry = run(source, work, config)
         out[name] = entry
@@ -96,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
     parser.add_argument("--scene", action="append", default=[], help="DATA/NAME or 'demo' (repeatable)")
     parser.add_argument("--smoke", action="store_true", help="the demo only")
+    parser.add_argument("--ablation", action="store_true", help="add the imitation's changes one at a time")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     args = parser.parse_args(argv)
     from mvintrinsic.cli import demo_scene_path
@@ -110,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (folder / "scene.json").is_file():
             parser.error(f"--scene {name}: no scene.json in {folder}")
         with tempfile.TemporaryDirectory() as tmp:
-            report["scenes"][name] = bench_scene(folder, Path(tmp))
+            report["scenes"][name] = bench_scene(folder, Path(tmp), ablation=args.ablation)
     if args.out:
         write_json(args.out, report)
         print(f"wrote {args.out}")

@@ -28,7 +28,7 @@ import os
 import shutil
 import tempfile
 import warnings
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -221,10 +221,13 @@ def read_image(path: os.PathLike | str, *, orient: bool = False) -> tuple[np.nda
     SceneError
         If the file is missing, unreadable, truncated or has an unsupported channel count.
     """
-    path = Path(path)
+    image, saturation, orientation = _read_linear(Path(path))
+    return (np.ascontiguousarray(exif_orient(image, orientation)) if orient else image), saturation
+
+
+def _read_linear(path: Path) -> tuple[np.ndarray, float | None, int]:
+    """:func:`read_image`'s pixels as stored, its saturation, and the file's EXIF orientation."""
     data, orientation = _read_stored(path, "image file not found")
-    if orient:
-        data = exif_orient(data, orientation)
     channels = data.shape[2]
     if channels not in (1, 2, 3, 4):
         raise SceneError(path, f"unsupported image with {channels} channels (need 1-4)")
@@ -238,19 +241,17 @@ def read_image(path: os.PathLike | str, *, orient: bool = False) -> tuple[np.nda
         data = np.repeat(data[..., :1], 3, axis=2)
     else:
         data = data[..., :3]
-    return np.ascontiguousarray(data), (1.0 if integer else None)
+    return np.ascontiguousarray(data), (1.0 if integer else None), orientation
 
 
 def read_image_for_size(path: os.PathLike | str, *, width: int, height: int) -> tuple[np.ndarray, float | None]:
     """:func:`read_image` as the scene's camera expects it: the pixels as stored (COLMAP's
     convention, which ignores the EXIF orientation), unless only the orientation makes them
     ``width`` x ``height`` (a model made from the photos as displayed)."""
-    image, saturation = read_image(path)
+    image, saturation, orientation = _read_linear(Path(path))
     h, w = image.shape[:2]
-    if (w, h) == (height, width) and w != h:
-        turned, _ = read_image(path, orient=True)
-        if turned.shape[:2] == (height, width):
-            return turned, saturation
+    if (w, h) == (height, width) and w != h and orientation >= 5:  # only 5-8 turn by 90 degrees
+        return np.ascontiguousarray(exif_orient(image, orientation)), saturation
     return image, saturation
 
 
@@ -275,7 +276,8 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         raise
 
 
-def write_image(path: os.PathLike | str, image: np.ndarray, *, dtype: str = "float") -> Path:
+def write_image(path: os.PathLike | str, image: np.ndarray, *, dtype: str = "float",
+                attributes: Mapping[str, int | float | str] | None = None) -> Path:
     """Write an image atomically with OpenImageIO (format from the extension).
 
     Parameters
@@ -286,6 +288,9 @@ def write_image(path: os.PathLike | str, image: np.ndarray, *, dtype: str = "flo
         Pixel values, written as they are (no colour encoding).
     dtype : {"float", "half", "uint8", "uint16"}, optional
         Storage type in the file.
+    attributes : mapping, optional
+        OpenImageIO metadata for the file, e.g. ``{"Compression": "jpeg:85", "Orientation": 6}``
+        (EXR files are zip-compressed unless it says otherwise).
 
     Returns
     -------
@@ -311,6 +316,8 @@ def write_image(path: os.PathLike | str, image: np.ndarray, *, dtype: str = "flo
         spec = oiio.ImageSpec(array.shape[1], array.shape[0], array.shape[2], dtype)
         if path.suffix.lower() == ".exr":
             spec.attribute("compression", "zip")
+        for name, value in (attributes or {}).items():
+            spec.attribute(name, value)
         ok = out.open(str(tmp), spec) and out.write_image(array)
         ok = out.close() and ok
         if not ok:

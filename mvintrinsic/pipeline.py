@@ -46,7 +46,7 @@ from .exposure import ExposureConfig, compensate, estimate_view_gains, restore_u
 from .matting import MattingConfig, intrinsic_layers
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
-from .raytrace import Step1Config, Step1Result, Tracer, step1
+from .raytrace import Step1Config, Step1Result, Tracer, depth_map, step1
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from .scene import Scene, View
 from .segmentation import Segmentation, SegmentationConfig, segment
@@ -382,7 +382,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     Decomposition
         Per-view :class:`~mvintrinsic.results.IntrinsicLayers`, the :class:`Lighting` (sun
         radiance, fitted sky, horizon plane, environment map), seconds per stage summed over the
-        views (``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
+        views (``depth_maps`` (cast once for the gains and Step 1), ``exposure``,
+        ``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
         :func:`step3`, or ``layers`` with ``steps=2``; ``step4`` and its parts ``step4.<part>``)
         and ``config.to_dict()``.
 
@@ -398,14 +399,17 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
 
     tracer = tracer if tracer is not None else Tracer(scene.proxy)
     start = time.perf_counter()
-    gains = estimate_view_gains(scene.views, tracer, config=config.exposure, rng=config.seed)
+    depths = [depth_map(v.camera, tracer) for v in scene.views]  # cast once: the gains and Step 1
+    timings["depth_maps"] = time.perf_counter() - start
+    start = time.perf_counter()
+    gains = estimate_view_gains(scene.views, tracer, config=config.exposure, depths=depths, rng=config.seed)
     if gains.applied:
         logger.info("exposure: compensating per-view gains (%s)", gains.reason)
         scene = compensate(scene, gains)
     timings["exposure"] = time.perf_counter() - start
 
     logger.info("step 1: environment map, sky model, S_sky, S_ind, ~v on %d proxy vertices", len(scene.proxy.vertices))
-    s1 = step1(scene, config=config.step1, tracer=tracer, rng=config.seed, progress=progress)
+    s1 = step1(scene, config=config.step1, tracer=tracer, depths=depths, rng=config.seed, progress=progress)
     timings.update({f"step1.{k}": v for k, v in s1.timings.items()})
 
     start = time.perf_counter()

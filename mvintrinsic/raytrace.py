@@ -1020,6 +1020,7 @@ def step1(
     *,
     config: Step1Config | None = None,
     tracer: Tracer | None = None,
+    depths: Sequence[np.ndarray] | None = None,
     rng: np.random.Generator | int | None = None,
     progress: bool = False,
 ) -> Step1Result:
@@ -1044,6 +1045,8 @@ def step1(
     config : Step1Config, optional
     tracer : Tracer, optional
         A tracer already built over ``scene.proxy`` (saves rebuilding it).
+    depths : sequence of (H, W) arrays, optional
+        The views' proxy depth maps (:func:`depth_map`), if already cast (saves casting them).
     rng : numpy.random.Generator or int, optional
         Seeds RANSAC and the hemisphere sampling.
     progress : bool, optional
@@ -1069,7 +1072,11 @@ def step1(
     timings["horizon"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    depths = [depth_map(v.camera, tracer) for v in scene.views]
+    if depths is None:
+        depths = [depth_map(v.camera, tracer) for v in scene.views]
+    elif len(depths) != len(scene.views) or any(
+            np.shape(d) != v.camera.shape for d, v in zip(depths, scene.views, strict=True)):
+        raise ValueError("depths must hold one (H, W) depth map per view of the scene, in scene order")
     uncovered = [np.isinf(d) & v.mask for d, v in zip(depths, scene.views, strict=True)]
     environment, sky_model = estimate_environment(
         scene.views, uncovered, sun_direction=scene.sun.direction, horizon_normal=horizon.plane[:3],

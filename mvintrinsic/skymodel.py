@@ -60,6 +60,7 @@ from .scene import View
 __all__ = [
     "EnvironmentMap",
     "HorizonPlane",
+    "NoGroundPlaneError",
     "PartialEnvironmentMap",
     "SkyConfig",
     "SkyFitError",
@@ -230,6 +231,10 @@ class SkyConfig:
             raise ValueError(f"outlier_ratio must be a positive number or None, got {self.outlier_ratio!r}")
         if not (0.0 < float(self.horizon_angle_tol_deg) < 90.0):
             raise ValueError(f"horizon_angle_tol_deg must be in (0, 90), got {self.horizon_angle_tol_deg!r}")
+
+
+class NoGroundPlaneError(ValueError):
+    """The proxy has no near-horizontal plane to serve as the horizon (:func:`horizon_plane`)."""
 
 
 class SkyFitError(RuntimeError):
@@ -460,8 +465,9 @@ def horizon_plane(
     Raises
     ------
     ValueError
-        If ``vertices`` holds fewer than 3 finite points, or no near-horizontal plane exists:
-        no candidate within the angle tolerance, or the best one is not denser than its
+        If ``vertices`` holds fewer than 3 finite points.
+    NoGroundPlaneError
+        (a ValueError) If no near-horizontal plane exists: no candidate within the angle tolerance, or the best one is not denser than its
         surroundings by ``config.horizon_min_contrast`` (e.g. a horizontal slice through walls).
     """
     config = config_or_default(config, SkyConfig)
@@ -490,7 +496,7 @@ def horizon_plane(
         anchors[horizontal][: config.horizon_iterations],
     )
     if len(normals) == 0:
-        raise ValueError(
+        raise NoGroundPlaneError(
             f"vertices: no near-horizontal plane (normal within {config.horizon_angle_tol_deg}° of up "
             f"{up.tolist()}) among {n_draw} random vertex triples; the proxy has no horizon plane"
         )
@@ -515,7 +521,7 @@ def horizon_plane(
     contrast = math.inf if n_near == 0 else 3.0 * n_in / n_near
     tilt = math.degrees(math.acos(min(1.0, float(plane[:3] @ up))))
     if n_in < 3 or tilt > config.horizon_angle_tol_deg or contrast < config.horizon_min_contrast:
-        raise ValueError(
+        raise NoGroundPlaneError(
             f"vertices: no near-horizontal plane found: the best candidate (tilt {tilt:.1f}° from up, "
             f"{n_in} inliers within {delta} m) is only {contrast:.2f} times denser than its surroundings "
             f"(need {config.horizon_min_contrast}); the proxy has no ground plane"
@@ -605,8 +611,8 @@ def find_horizon(
                                reason="SkyConfig.horizon='up'")
     try:
         return horizon_plane(vertices, up=up, config=config, rng=rng)
-    except ValueError as exc:
-        if config.horizon == "plane" or not str(exc).startswith("vertices: no near-horizontal plane"):
+    except NoGroundPlaneError as exc:
+        if config.horizon == "plane":
             raise
         return horizon_from_up(vertices, up=up, camera_centers=camera_centers, camera_ups=camera_ups, config=config,
                                reason=str(exc))

@@ -392,7 +392,6 @@ def test_sun_time_solstice_noon_on_equator(scene_dir):
 # it; most cases fail while loading, before any computation. The contract is docs/formats.md,
 # "Errors": exit status 2, stderr exactly one line ``mvintrinsic CMD: error: ...`` naming the
 # culprit, every input file byte-identical, and nothing written (no OUT, no ``.OUT.partial-*``).
-# A case that found a library bug is listed in LIBRARY_BUGS and marked xfail(strict=True).
 
 
 def _ascii_proxy(scene: Path, *, extra_face=None, vertex_count=None, nan_vertex=False) -> None:
@@ -635,13 +634,7 @@ FAULTS = {
                                              argv=RELIGHT),
 }
 
-#: library bugs the table found: each case states the contract and fails until the bug is fixed
-LIBRARY_BUGS: dict[str, str] = {}
-FAULT_CASES = [
-    pytest.param(name, marks=pytest.mark.xfail(strict=True, raises=AssertionError,
-                                               reason=f"library bug: {LIBRARY_BUGS[name]}"))
-    if name in LIBRARY_BUGS else name for name in FAULTS
-]
+FAULT_CASES = list(FAULTS)
 
 
 @pytest.fixture(scope="module")

@@ -21,6 +21,7 @@ import numpy as np
 
 __all__ = [
     "Part",
+    "area_weighted_normals",
     "axis_grid",
     "box",
     "concat",
@@ -53,6 +54,21 @@ class Part:
         a, b, c = (self.vertices[self.triangles[:, i]] for i in range(3))
         n = np.cross(b - a, c - a)
         return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def area_weighted_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Area-weighted unit vertex normals of a mesh, (N, 3) float64; +Z for a vertex used only by
+    zero-area faces (or by none)."""
+    a, b, c = (vertices[triangles[:, i]] for i in range(3))
+    face = np.cross(b - a, c - a)
+    normals = np.zeros_like(vertices, dtype=np.float64)
+    for i in range(3):
+        np.add.at(normals, triangles[:, i], face)
+    length = np.linalg.norm(normals, axis=1)
+    bad = length < 1e-15
+    normals[bad] = _UP
+    length[bad] = 1.0
+    return normals / length[:, None]
 
 
 def concat(parts: Sequence[Part]) -> Part:

@@ -35,37 +35,14 @@ from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
 from ..io import read_colmap, read_image, read_proxy, write_colmap_text, write_image, write_json, write_proxy
+from ..preview import tonemap
 from ..scene import Proxy
 from ..skymodel import horizon_plane
+from ._geometry import area_weighted_normals
 
 __all__ = ["imitate_capture"]
 
 _SCALED = ("shading", "sun_shading", "env_shading")
-
-
-def _srgb_codes(linear: np.ndarray) -> np.ndarray:
-    """8-bit sRGB codes of linear values in [0, 1] (colour-science's sRGB inverse EOTF)."""
-    from ..io import import_colour
-
-    colour = import_colour()
-    encoded = np.asarray(colour.cctf_encoding(np.clip(linear, 0.0, 1.0), function="sRGB"))
-    return np.clip(np.round(encoded * 255.0), 0, 255).astype(np.uint8)
-
-
-def _write_jpeg(path: Path, codes: np.ndarray, *, quality: int, orientation: int = 1) -> None:
-    """Write 8-bit codes (H, W, 3) as a JPEG with OpenImageIO, with an EXIF orientation tag."""
-    import OpenImageIO as oiio
-
-    spec = oiio.ImageSpec(codes.shape[1], codes.shape[0], 3, "uint8")
-    spec.attribute("Compression", f"jpeg:{quality}")
-    spec.attribute("Orientation", int(orientation))
-    out = oiio.ImageOutput.create(str(path))
-    if out is None or not out.open(str(path), spec):
-        raise OSError(f"{path}: cannot write a JPEG ({oiio.geterror().strip()})")
-    ok = out.write_image(np.ascontiguousarray(codes))
-    ok = out.close() and ok
-    if not ok:
-        raise OSError(f"{path}: writing failed ({out.geterror().strip()})")
 
 
 def _cap(vertices: np.ndarray, up: np.ndarray, ground: float, *, overhang: float, rise: float,
@@ -139,19 +116,8 @@ def _edit_proxy(proxy: Proxy, up: np.ndarray, *, ground_band: float | None, cap:
         triangles = np.vstack([triangles, cap_t + len(vertices)])
         vertices = np.vstack([vertices, cap_v])
     info["cap_faces_added"] = cap_faces
-    normals = _vertex_normals(vertices, triangles)
+    normals = area_weighted_normals(vertices, triangles)
     return Proxy(vertices, normals, triangles), info
-
-
-def _vertex_normals(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """Area-weighted vertex normals of a mesh, (N, 3) unit (up where a vertex has no face)."""
-    v = vertices[triangles]
-    face = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    normals = np.zeros_like(vertices)
-    for corner in range(3):
-        np.add.at(normals, triangles[:, corner], face)
-    length = np.linalg.norm(normals, axis=1, keepdims=True)
-    return np.where(length > 0, normals / np.maximum(length, 1e-30), [0.0, 0.0, 1.0])
 
 
 def imitate_capture(
@@ -234,12 +200,13 @@ def imitate_capture(
     (dst / "images").mkdir(parents=True)
     new_cameras = {}
     for k, (name, stem, image) in enumerate(zip(names, stems, images, strict=True)):
-        codes = _srgb_codes(np.nan_to_num(image * np.float32(scale) * gains[k].astype(np.float32)))
+        codes = tonemap(image * np.float32(scale) * gains[k].astype(np.float32), white=1.0)  # 8-bit sRGB
         orientation = 1
         if portrait_view is not None and k == portrait_view:
             codes, orientation = np.ascontiguousarray(np.rot90(codes, 1)), 6  # stored turned; displays upright
         file = f"{stem}.jpg"
-        _write_jpeg(dst / "images" / file, codes, quality=int(jpeg_quality), orientation=orientation)
+        write_image(dst / "images" / file, codes, dtype="uint8",
+                    attributes={"Compression": f"jpeg:{int(jpeg_quality)}", "Orientation": orientation})
         new_cameras[file] = cameras[name]
     write_colmap_text(dst / "sparse", new_cameras)
     write_json(dst / "scene.json", settings)

@@ -17,6 +17,7 @@ from types import MappingProxyType
 import numpy as np
 
 from ..scene import Proxy
+from ._geometry import area_weighted_normals
 
 __all__ = ["LABELS", "Material", "SynthMesh", "SynthScene", "ViewPath"]
 
@@ -153,13 +154,4 @@ class SynthScene:
         """The exact geometry as a mesh :class:`~mvintrinsic.scene.Proxy` (area-weighted vertex
         normals; a vertex used only by zero-area faces gets +Z)."""
         vertices, triangles, _, _ = self.merged()
-        a, b, c = (vertices[triangles[:, i]] for i in range(3))
-        face = np.cross(b - a, c - a)
-        normals = np.zeros_like(vertices)
-        for i in range(3):
-            np.add.at(normals, triangles[:, i], face)
-        length = np.linalg.norm(normals, axis=1)
-        bad = length < 1e-15
-        normals[bad] = [0.0, 0.0, 1.0]
-        length[bad] = 1.0
-        return Proxy(vertices, normals / length[:, None], triangles)
+        return Proxy(vertices, area_weighted_normals(vertices, triangles), triangles)

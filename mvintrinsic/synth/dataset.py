@@ -71,6 +71,10 @@ class SynthConfig:
         Tags of the relit renders, e.g. ``("az+15", "el+10")``.
     gloss : bool
         Mild glossiness on a few materials (stress tests).
+    occluders : bool
+        False renders the recipe without its occluders: ground and plain box buildings only, so
+        that a sun in front of the facades casts no shadow in view (the no-cast-shadow scene of
+        ``docs/stability.md``; :func:`~mvintrinsic.synth.recipes.build_scene`).
     seed : int
         Seed of the recipe, the sun draw, the sampler and the proxy simulation.
     render : RenderConfig
@@ -88,6 +92,7 @@ class SynthConfig:
     sun_elevation_deg: float | None = None
     relit: tuple[str, ...] = DEFAULT_RELIT
     gloss: bool = False
+    occluders: bool = True
     seed: int = 0
     render: RenderConfig = field(default_factory=RenderConfig)
     proxy: ProxyConfig = field(default_factory=ProxyConfig)
@@ -213,7 +218,7 @@ def synthesize(recipe: str, out: str | Path, *, config: SynthConfig | None = Non
     out = Path(out)
     _prepare(out, overwrite)
     started = time.perf_counter()
-    scene = build_scene(recipe, seed=config.seed, gloss=config.gloss)
+    scene = build_scene(recipe, seed=config.seed, gloss=config.gloss, occluders=config.occluders)
     cameras = cameras_along_path(scene.path, n_views=config.n_views, width=config.width, height=config.height,
                                  hfov_deg=config.hfov_deg, spacing=config.spacing)
     azimuth, elevation = _sun_angles(scene, config)
@@ -287,10 +292,11 @@ def synthesize(recipe: str, out: str | Path, *, config: SynthConfig | None = Non
         "triangles": int(len(proxy.triangles)) if proxy.is_mesh else 0,
         "within_10cm": float(np.mean(distances <= 0.10)),
         "median_distance_m": float(np.median(distances)),
-        # share of the whole foliage surface with a proxy vertex within 10 cm
-        "foliage_retention": float(foliage_retention(proxy, vertices, triangles, labels)),
-        # the same per label, over the surface the cameras see (pixel samples)
-        "retention_seen": {k: float(v) for k, v in label_retention(proxy, vertices, triangles, labels, cameras).items()},
+        # share of the whole foliage surface with a proxy vertex within 10 cm (None: no foliage)
+        "foliage_retention": _finite_or_none(foliage_retention(proxy, vertices, triangles, labels)),
+        # the same per label, over the surface the cameras see (pixel samples; None: label not seen)
+        "retention_seen": {k: _finite_or_none(v)
+                           for k, v in label_retention(proxy, vertices, triangles, labels, cameras).items()},
         "seconds": proxy_seconds,
     }
     info = {
@@ -339,6 +345,11 @@ def _save_npz(path: Path, **arrays) -> None:
             np.savez_compressed(fh, **arrays)
 
     _atomic_write(path, write)
+
+
+def _finite_or_none(value: float) -> float | None:
+    """``float(value)``, or None for NaN (JSON holds no NaN: a scene without foliage, say)."""
+    return float(value) if math.isfinite(value) else None
 
 
 def _jsonable(value):

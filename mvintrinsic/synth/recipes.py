@@ -421,7 +421,7 @@ def _bollard(base: Sequence[float]) -> Part:
 
 
 # -- recipes ---------------------------------------------------------------------------------------
-def courtyard(*, seed: int = 0, gloss: bool = False) -> SynthScene:
+def courtyard(*, seed: int = 0, gloss: bool = False, occluders: bool = True) -> SynthScene:
     """A paved courtyard before a plastered facade, with a tree, a statue, a lamp pole and a fence.
 
     Layout (metres, ``+Y`` from the cameras toward the facade):
@@ -443,6 +443,9 @@ def courtyard(*, seed: int = 0, gloss: bool = False) -> SynthScene:
         Seed of the layout jitter, the foliage and the textures.
     gloss : bool, optional
         Mildly glossy glass, lamp pole and statue (``roughness`` = :data:`GLOSS_ROUGHNESS`).
+    occluders : bool, optional
+        False: the ground and the facade as a plain box (no openings, sills, bands, cornice or
+        plaque), no tree, lamp pole, fence or statue (:func:`build_scene`).
 
     Returns
     -------
@@ -480,6 +483,14 @@ def courtyard(*, seed: int = 0, gloss: bool = False) -> SynthScene:
     openings = _window_grid([c for c in columns if c != 8.0], [(1.0, 2.8)], 1.2)
     openings += _window_grid(columns, [(4.6, 6.5)], 1.2)
     openings.append((7.2, 8.8, 0.15, 2.75, "door"))
+    origin = np.array([-8.0, 8.0, 0.0])
+    b.mark("facade_corner", origin + [0.0, 0.0, height])
+    b.mark("facade_center", origin + [width / 2, 0.0, height / 2])
+    path = _path((0.0, -9.0, 1.7), (1.0, 0.0, 0.0), (0.0, 4.0, 3.2))
+    if not occluders:
+        b.add("facade_wall", _building(width, depth, height, [], wall_tile=_TILE["plaster"])["wall"]
+              .transformed(None, origin), plaster, "solid")
+        return b.scene(path)
     parts = _building(width, depth, height, openings, wall_tile=_TILE["plaster"])
     stone_tile = _TILE["stone"]
     bands = concat(
@@ -488,15 +499,12 @@ def courtyard(*, seed: int = 0, gloss: bool = False) -> SynthScene:
             box((-0.25, -0.3, height - 0.35), (width + 0.25, depth + 0.3, height + 0.05), tile=stone_tile),
         ]
     )
-    origin = np.array([-8.0, 8.0, 0.0])
     b.add("facade_wall", parts["wall"].transformed(None, origin), plaster, "solid")
     b.add("facade_reveals", parts["reveals"].transformed(None, origin), trim, "solid")
     b.add("facade_windows", parts["glass"].transformed(None, origin), glass, "solid")
     b.add("facade_door", parts["door"].transformed(None, origin), door, "solid")
     b.add("facade_trim", concat([parts["sills"], bands]).transformed(None, origin), trim, "solid")
     b.add("plaque", _plaque(7.0, 9.0, 3.0, 3.45).transformed(None, origin), plaque, "solid")
-    b.mark("facade_corner", origin + [0.0, 0.0, height])
-    b.mark("facade_center", origin + [width / 2, 0.0, height / 2])
     b.mark("door_center", origin + [8.0, 0.25, 1.45])
     b.mark("plaque_center", origin + [8.0, -0.03, 3.225])
 
@@ -518,10 +526,10 @@ def courtyard(*, seed: int = 0, gloss: bool = False) -> SynthScene:
     b.add("statue", figure, statue_stone, "solid")
     b.mark_all(markers)
 
-    return b.scene(_path((0.0, -9.0, 1.7), (1.0, 0.0, 0.0), (0.0, 4.0, 3.2)))
+    return b.scene(path)
 
 
-def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
+def street(*, seed: int = 0, gloss: bool = False, occluders: bool = True) -> SynthScene:
     """A street corner: brick and plaster facades at an angle, a car, a pergola, a tree, bollards.
 
     Layout (metres, ``+Y`` from the cameras toward the corner):
@@ -543,6 +551,9 @@ def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
         Seed of the layout jitter, the foliage and the textures.
     gloss : bool, optional
         Mildly glossy glass, lamp pole, bollards and car paint (``roughness`` = :data:`GLOSS_ROUGHNESS`).
+    occluders : bool, optional
+        False: the ground and facades A and B as plain boxes (no openings, sills, cornices or
+        sign), no car, pergola, tree, lamp pole or bollards (:func:`build_scene`).
 
     Returns
     -------
@@ -577,14 +588,28 @@ def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
     b.add("ground_paving", pav, paving, "ground")
     b.add("ground_far", _far_ground(), meadow, "ground")
 
-    # Facade A (brick), local frame at (-11, 8).
+    path = _path((0.0, -10.0, 1.7), (1.0, 0.0, 0.0), (1.0, 5.0, 3.2))
     wa, da, ha = 13.5, 8.0, 9.0
+    origin_a = np.array([-11.0, 8.0, 0.0])
+    wb, db, hb = 12.0, 8.0, 7.0
+    corner = np.array([2.5, 8.0, 0.0])
+    rb = rotation_z(np.deg2rad(-55.0))
+    if not occluders:
+        b.add("facade_a_wall", _building(wa, da, ha, [], wall_tile=_TILE["brick"])["wall"].transformed(None, origin_a),
+              brick, "solid")
+        b.add("facade_b_wall", _building(wb, db, hb, [], wall_tile=_TILE["plaster"])["wall"].transformed(rb, corner),
+              plaster, "solid")
+        b.mark_all({"facade_center": origin_a + [wa / 2, 0.0, ha / 2], "facade_corner": corner,
+                    "facade_corner_top": corner + [0.0, 0.0, hb],
+                    "facade_b_center": corner + rb @ np.array([wb / 2, 0.0, hb / 2])})
+        return b.scene(path)
+
+    # Facade A (brick), local frame at (-11, 8).
     cols_a = [1.4, 4.0, 6.6, 9.2, 11.8]
     openings = _window_grid([c for c in cols_a if c != 9.2], [(0.9, 2.5)], 1.1)
     openings += _window_grid(cols_a, [(3.9, 5.5), (6.9, 8.5)], 1.1)
     openings.append((8.6, 9.8, 0.15, 2.5, "door"))
     parts_a = _building(wa, da, ha, openings, wall_tile=_TILE["brick"])
-    origin_a = np.array([-11.0, 8.0, 0.0])
     cornice_a = box((-0.2, -0.25, ha - 0.3), (wa + 0.2, da + 0.25, ha + 0.05), tile=_TILE["stone"])
     b.add("facade_a_wall", parts_a["wall"].transformed(None, origin_a), brick, "solid")
     b.add("facade_a_reveals", parts_a["reveals"].transformed(None, origin_a), trim, "solid")
@@ -597,15 +622,12 @@ def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
     b.mark("sign_center", origin_a + [10.3, -0.05, 3.05])
 
     # Facade B (plaster), turned toward the cameras about its front-left corner.
-    wb, db, hb = 12.0, 8.0, 7.0
     cols_b = [1.5, 4.0, 6.5, 9.0]
     openings = _window_grid([c for c in cols_b if c != 6.5], [(1.0, 2.6)], 1.2)
     openings += _window_grid(cols_b, [(4.3, 5.9)], 1.2)
     openings.append((5.9, 7.1, 0.15, 2.6, "door"))
     parts_b = _building(wb, db, hb, openings, wall_tile=_TILE["plaster"])
     cornice_b = box((-0.2, -0.25, hb - 0.3), (wb + 0.2, db + 0.25, hb + 0.05), tile=_TILE["stone"])
-    corner = np.array([2.5, 8.0, 0.0])
-    rb = rotation_z(np.deg2rad(-55.0))
     b.add("facade_b_wall", parts_b["wall"].transformed(rb, corner), plaster, "solid")
     b.add("facade_b_reveals", parts_b["reveals"].transformed(rb, corner), trim, "solid")
     b.add("facade_b_windows", parts_b["glass"].transformed(rb, corner), glass, "solid")
@@ -640,14 +662,14 @@ def street(*, seed: int = 0, gloss: bool = False) -> SynthScene:
     b.mark_all(markers)
     b.add("bollards", concat([_bollard((x, -5.5, 0.0)) for x in (-4.5, -3.0, 3.0, 4.5, 6.0)]), metal, "solid")
 
-    return b.scene(_path((0.0, -10.0, 1.7), (1.0, 0.0, 0.0), (1.0, 5.0, 3.2)))
+    return b.scene(path)
 
 
-#: Scene recipes by name: ``name -> builder(*, seed, gloss) -> SynthScene``.
+#: Scene recipes by name: ``name -> builder(*, seed, gloss, occluders) -> SynthScene``.
 RECIPES: dict[str, Callable[..., SynthScene]] = {"courtyard": courtyard, "street": street}
 
 
-def build_scene(recipe: str, *, seed: int = 0, gloss: bool = False) -> SynthScene:
+def build_scene(recipe: str, *, seed: int = 0, gloss: bool = False, occluders: bool = True) -> SynthScene:
     """Build a procedural outdoor scene.
 
     Parameters
@@ -660,18 +682,21 @@ def build_scene(recipe: str, *, seed: int = 0, gloss: bool = False) -> SynthScen
     gloss : bool, optional
         Give a mild gloss (GGX roughness :data:`GLOSS_ROUGHNESS`) to glass, painted metal and
         polished stone; otherwise every material is purely diffuse (``roughness=None``).
-
-    Returns
-    -------
-    SynthScene
-        Meshes in the world frame (metres, Z up), materials, camera path and markers.
+    occluders : bool, optional
+        False keeps only the ground and the buildings, as plain closed boxes: no window or door
+        recesses, sills, cornices or signs, and no tree, pole, car or other free-standing object.
+        Each remaining solid is convex and stands on the ground, so a sun in front of the
+        facades casts no shadow that the cameras see: a sunny scene without cast shadows, the
+        case in which Step 2 finds no light/shadow pair (``benchmarks/bench_stability.py``,
+        ``docs/stability.md``). Textures, camera path and markers of the buildings are those of
+        the full recipe with the same seed.
 
     Raises
     ------
     ValueError
         If ``recipe`` is unknown (the message lists the valid names) or ``seed`` is negative.
     TypeError
-        If ``seed`` is not an int or ``gloss`` not a bool.
+        If ``seed`` is not an int, or ``gloss`` or ``occluders`` not a bool.
     """
     if not isinstance(recipe, str) or recipe not in RECIPES:
         raise ValueError(f"recipe must be one of {sorted(RECIPES)}, got {recipe!r}")
@@ -681,4 +706,6 @@ def build_scene(recipe: str, *, seed: int = 0, gloss: bool = False) -> SynthScen
         raise ValueError(f"seed must be non-negative, got {seed!r}")
     if not isinstance(gloss, (bool, np.bool_)):
         raise TypeError(f"gloss must be a bool, got {type(gloss).__name__} {gloss!r}")
-    return RECIPES[recipe](seed=int(seed), gloss=bool(gloss))
+    if not isinstance(occluders, (bool, np.bool_)):
+        raise TypeError(f"occluders must be a bool, got {type(occluders).__name__} {occluders!r}")
+    return RECIPES[recipe](seed=int(seed), gloss=bool(gloss), occluders=bool(occluders))

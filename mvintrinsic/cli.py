@@ -33,6 +33,7 @@ import numpy as np
 
 from ._version import __version__
 from .io import DEFAULT_MAX_SIZE, ResultFolderError, SceneError, load_scene
+from .pipeline import PRESETS
 from .scene import Scene
 from .skymodel import SkyFitError
 from .sun_calibration import SunCalibrationError
@@ -156,6 +157,8 @@ def _print_decomposition(result, scene: Scene) -> None:
     print(f"L_sun        {np.round(sun, 4).tolist()} (shading units)")
     if sky is not None:
         print(f"sky          {sky.model}, turbidity {sky.turbidity:.2f}, scale {np.round(sky.scale, 4).tolist()}")
+    for name, choice in result.lighting.model.items():
+        print(f"{'model ' + name:12s} {choice.choice}: {choice.evidence}")
     if result.lighting.horizon_evidence == "up":
         print("horizon      from the scene's up vector: the proxy has no clear ground plane")
     gains = result.lighting.exposure
@@ -210,11 +213,20 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
-def _read_config(path: Path | None):
+def _merged(base: dict, changes: dict) -> dict:
+    """``base`` with ``changes`` written over it, nested mappings merged key by key."""
+    out = dict(base)
+    for key, value in changes.items():
+        out[key] = _merged(base[key], value) if isinstance(value, dict) and isinstance(base.get(key), dict) else value
+    return out
+
+
+def _read_config(path: Path | None, preset: str | None = None):
     from .pipeline import Config
 
+    base = Config() if preset is None else Config.preset(preset)
     if path is None:
-        return Config()
+        return base
     try:
         text = path.read_bytes()
     except OSError as exc:
@@ -229,7 +241,7 @@ def _read_config(path: Path | None):
     except (ValueError, UnicodeDecodeError) as exc:
         raise ValueError(f"--config {path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'} ({exc})") from None
     try:
-        return Config.from_dict(data)
+        return Config.from_dict(data if preset is None else _merged(base.to_dict(), data))
     except ValueError as exc:
         raise ValueError(f"--config {path}: {exc}") from None
 
@@ -241,7 +253,7 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
     from .pipeline import decompose
 
     check_result_folder(args.out, scene=args.scene, overwrite=args.overwrite)  # before any work
-    config = _read_config(args.config)
+    config = _read_config(args.config, args.preset)
     if args.allow_missing_sun:
         config = replace(config, allow_missing_sun=True)
     if args.steps is not None:
@@ -443,6 +455,8 @@ def build_parser() -> argparse.ArgumentParser:
     dec.add_argument("out", type=Path, help="result folder to write (absent, empty, or a previous result)")
     dec.add_argument("--config", type=Path, default=None,
                      help="JSON or TOML file with (part of) the configuration, e.g. {\"sun\": {\"walk\": 20}}")
+    dec.add_argument("--preset", choices=PRESETS, default=None,
+                     help="speed against accuracy (Config.preset, docs/presets.md); --config changes apply on top")
     dec.add_argument("--max-size", type=_max_size, default=DEFAULT_MAX_SIZE, help=MAX_SIZE_HELP)
     dec.add_argument("--views", nargs="+", default=None, metavar="STEM", help="decompose only these views")
     dec.add_argument("--steps", type=int, choices=(2, 3, 4), default=None,

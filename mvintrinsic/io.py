@@ -37,7 +37,8 @@ import numpy as np
 from ._libusb import ensure_libusb
 from .camera import CAMERA_MODELS, Camera
 from .raytrace import Tracer
-from .results import Decomposition, IntrinsicLayers, Lighting, SkyParameters, ViewGains
+from .resolution import resize_image
+from .results import Decomposition, IntrinsicLayers, Lighting, ModelChoice, SkyParameters, ViewGains
 from .scene import Proxy, Scene, Sun, View, valid_pixels
 from .sun_position import sun_from_clicks, sun_from_time
 
@@ -812,16 +813,6 @@ def read_scene_json(path: os.PathLike | str) -> dict[str, Any]:
 # ---------------------------------------------------------------------------------------------
 # the scene
 # ---------------------------------------------------------------------------------------------
-def _resize(image: np.ndarray, mask: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Area-average ``image``; a pixel of the result is valid only if all its sources were."""
-    import cv2
-
-    clean = np.where(mask[..., None], image, 0.0).astype(np.float32)
-    small = cv2.resize(clean, (width, height), interpolation=cv2.INTER_AREA)
-    coverage = cv2.resize(mask.astype(np.float32), (width, height), interpolation=cv2.INTER_AREA)
-    return small, coverage > 1.0 - 1e-4
-
-
 def load_scene(
     path: os.PathLike | str,
     *,
@@ -925,7 +916,7 @@ def load_scene(
         if max_size is not None and max(w, h) > max_size:
             scale = max_size / max(w, h)
             nw, nh = max(1, round(w * scale)), max(1, round(h * scale))
-            image, mask = _resize(image, mask, nw, nh)
+            image, mask = resize_image(image, mask, nw, nh)
             camera = camera.scaled(nw, nh)
         loaded.append(View(Path(name).with_suffix("").as_posix(), image, camera, mask))
 
@@ -1277,6 +1268,7 @@ def load_decomposition(folder: os.PathLike | str) -> Decomposition:
             envmap=envmap,
             horizon_evidence=data.get("horizon_evidence"),
             exposure=None if data.get("exposure") is None else ViewGains.from_dict(data["exposure"]),
+            model={name: ModelChoice.from_dict(value) for name, value in (data.get("model") or {}).items()},
         )
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, SceneError):

@@ -47,15 +47,16 @@ from .matting import MattingConfig, intrinsic_layers
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
 from .raytrace import Step1Config, Step1Result, Tracer, depth_map, step1
-from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
+from .resolution import downscale_scene, upsample_layers
+from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, ModelChoice, SkyParameters
 from .scene import Scene, View
 from .segmentation import Segmentation, SegmentationConfig, segment
 from .shadow_mrf import ShadowConfig, ShadowLabels, label_shadows
 from .skymodel import SkyConfig
-from .sun_calibration import SunCalibration, SunConfig, calibrate_sun, find_sun_pairs
+from .sun_calibration import SunCalibration, SunConfig, SunPairs, calibrate_sun, direct_sun_evidence, find_sun_pairs
 
-__all__ = ["Config", "Step3View", "calibrate", "carry_to_pixels", "decompose", "step2_layers", "step3", "step3_view",
-           "step4"]
+__all__ = ["PRESETS", "Config", "Step3View", "calibrate", "carry_to_pixels", "choose_direct_sun", "decompose",
+           "environment_layers", "label_layers", "step2_layers", "step3", "step3_view", "step4"]
 
 logger = logging.getLogger(__name__)
 
@@ -79,16 +80,27 @@ class Config:
         Which shadow labelling Step 3 runs (``method``) and the paper's MRF (Sec. 6.1, Eqs. 6-16).
     multiview : MultiViewShadowConfig
         The multi-view, pixel-level labelling (``shadow.method="multiview"``, the default).
-    matting : MattingConfig
-        Per-pixel visibility and shading (Sec. 6.2).
+    matting : MattingConfig or None
+        Per-pixel visibility and shading (Sec. 6.2). None skips the matting (beyond the paper,
+        for speed): ``v_sun`` is the shadow labels (1 lit, 0 shadow, the proxy's ``~v`` where
+        undecided) softened by a Gaussian of :data:`LABEL_SOFTNESS` pixels, and the environment
+        shading is Step 1's per pixel (Eq. 17 as in Step 2).
     env_refine : EnvRefineConfig
         Step 4 (Sec. 7): the multi-view reflectance fusion (default) or the paper's ``S_env``
         offsets (:mod:`mvintrinsic.env_refine`).
+    scale : float
+        Working resolution, in (0, 1]: the views are area-averaged to ``scale`` times their size
+        (but not below :data:`MIN_WORKING_SIDE` pixels on their longer side), decomposed, and the
+        layers carried back to full size (beyond the paper,
+        :mod:`mvintrinsic.resolution`: bilinear shading, ``v_sun`` guided by the photo, then
+        ``R = I / S`` at full size). 1 (default) decomposes at full size.
     steps : {2, 3, 4}
         Last step run: 2 gives the Step-2 layers (proxy visibility), 3 the Step-3 layers, 4
         (default) the Step-4 layers.
     allow_missing_sun : bool
-        When no light/shadow pair survives: False raises
+        With ``SunConfig(direct_sun="always")`` (the paper; the default ``"auto"`` decides that a
+        scene without pairs has no direct sun, :func:`choose_direct_sun`), when no light/shadow
+        pair survives: False raises
         :class:`~mvintrinsic.sun_calibration.SunCalibrationError`; True uses ``L_sun = 0`` (all
         light treated as environment light; see :func:`~mvintrinsic.sun_calibration.calibrate_sun`).
     seed : int
@@ -101,8 +113,9 @@ class Config:
     segmentation: SegmentationConfig = field(default_factory=SegmentationConfig)
     shadow: ShadowConfig = field(default_factory=ShadowConfig)
     multiview: MultiViewShadowConfig = field(default_factory=MultiViewShadowConfig)
-    matting: MattingConfig = field(default_factory=MattingConfig)
+    matting: MattingConfig | None = field(default_factory=MattingConfig)
     env_refine: EnvRefineConfig = field(default_factory=EnvRefineConfig)
+    scale: float = 1.0
     steps: int = 4
     allow_missing_sun: bool = False
     seed: int = 0
@@ -114,14 +127,65 @@ class Config:
                            ("shadow", ShadowConfig),
                            ("multiview", MultiViewShadowConfig), ("matting", MattingConfig),
                            ("env_refine", EnvRefineConfig)):
+            if name == "matting" and self.matting is None:
+                continue
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
+        if isinstance(self.scale, bool) or not isinstance(self.scale, (int, float)) or not 0.0 < self.scale <= 1.0:
+            raise ValueError(f"scale must be a number in (0, 1], got {self.scale!r}")
         if self.steps not in (2, 3, 4) or isinstance(self.steps, bool):
             raise ValueError(f"steps must be 2, 3 or 4, got {self.steps!r}")
         if not isinstance(self.allow_missing_sun, bool):
             raise TypeError(f"allow_missing_sun must be a bool, got {self.allow_missing_sun!r}")
         if isinstance(self.seed, bool) or not isinstance(self.seed, int):
             raise TypeError(f"seed must be an int, got {self.seed!r}")
+
+    @classmethod
+    def preset(cls, name: str) -> Config:
+        """A named trade of speed against accuracy (:data:`PRESETS`; ``docs/presets.md`` charts them).
+
+        Parameters
+        ----------
+        name : {"fast", "balanced", "paper", "best"}
+            * ``"fast"``: working resolution 1/2 (:mod:`mvintrinsic.resolution`), 32 Step-1 rays
+              on a 0.2 m grid, one labelling pass; the multi-view labels, matting and Step 4 as by
+              default. (Skipping the matting, ``matting=None``, cost more accuracy than halving
+              the resolution: reflectance LMSE 0.072 against 0.045 on demo_480, ``docs/presets.md``.)
+            * ``"balanced"``: the defaults, ``Config()``.
+            * ``"paper"``: the paper's method as published (Duchêne et al. 2015): the per-view
+              colour segmentation and MRF of Sec. 6.1, matting (Sec. 6.2), Step 4's ``S_env``
+              offsets (Sec. 7), the proxy's own normals, no exposure compensation and no sky
+              colour test.
+            * ``"best"``: the defaults with twice the Step-1 rays (128) on a grid twice as fine
+              (0.05 m) and two consensus passes of the labelling.
+
+        Returns
+        -------
+        Config
+
+        Raises
+        ------
+        ValueError
+            If ``name`` is not one of :data:`PRESETS`.
+        """
+        if name not in PRESETS:
+            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
+        base = cls()
+        if name == "balanced":
+            return base
+        if name == "fast":
+            return dataclasses.replace(
+                base, scale=0.5,
+                step1=dataclasses.replace(base.step1, n_rays=32, subsample=0.2),
+                multiview=dataclasses.replace(base.multiview, iterations=1))
+        if name == "paper":
+            return dataclasses.replace(
+                base, exposure=ExposureConfig(method="none"), shadow=ShadowConfig(method="paper"),
+                env_refine=EnvRefineConfig(method="paper"),
+                step1=dataclasses.replace(base.step1, normal_smoothing=0.0, sky_colour_tolerance=None))
+        return dataclasses.replace(  # "best"
+            base, step1=dataclasses.replace(base.step1, n_rays=128, subsample=0.05),
+            multiview=dataclasses.replace(base.multiview, consensus_passes=2))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-compatible nested mapping (the ``config`` key of ``lighting.json``)."""
@@ -135,6 +199,9 @@ class Config:
         """
         return _from_dict(cls, data, "config")
 
+
+#: The names :meth:`Config.preset` knows, from the fastest to the most work.
+PRESETS = ("fast", "balanced", "paper", "best")
 
 _NESTED = {"step1": Step1Config, "exposure": ExposureConfig, "sun": SunConfig, "sky": SkyConfig,
            "segmentation": SegmentationConfig,
@@ -175,12 +242,10 @@ def carry_to_pixels(scene: Scene, step1_result: Step1Result, tracer: Tracer, *, 
 def calibrate(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config | None = None,
               progress: bool = False) -> SunCalibration:
     """Step 2 (Sec. 5): light/shadow pairs in every view, then ``L_sun`` (per-channel median)."""
-    from tqdm.auto import tqdm
 
     config = config or Config()
-    pairs = [find_sun_pairs(view, quantities[view.stem], config=config.sun)
-             for view in tqdm(scene.views, desc="sun pairs", unit="view", disable=not progress)]
-    return calibrate_sun(pairs, allow_missing=config.allow_missing_sun)
+    return calibrate_sun(_sun_pairs(scene, quantities, config=config, progress=progress),
+                         allow_missing=config.allow_missing_sun)
 
 
 def step2_layers(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray) -> IntrinsicLayers:
@@ -217,18 +282,19 @@ class Step3View:
 
     Parameters
     ----------
-    segmentation : Segmentation
+    segmentation : Segmentation or None
         The view's colour clusters (the paper's labelling works on them; the matting uses their
-        boundaries with either labelling).
+        boundaries with either labelling); None when neither needs them (multi-view labels
+        without matting).
     shadow : ShadowLabels or PixelShadowLabels
         The paper's per-cluster labels, or the view's share of the multi-view labels.
     layers : IntrinsicLayers
     timings : mapping of str to float
         ``segmentation``, ``shadow_mrf`` (paper only; the multi-view labelling is shared by all
-        views, see :func:`step3`) and ``matting`` seconds.
+        views, see :func:`step3`) and ``matting`` (or ``layers`` without matting) seconds.
     """
 
-    segmentation: Segmentation
+    segmentation: Segmentation | None
     shadow: ShadowLabels | PixelShadowLabels
     layers: IntrinsicLayers
     timings: Mapping[str, float]
@@ -268,9 +334,11 @@ def step3_view(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray
     # The segmentation serves the matting under both labellings: its cluster boundaries are kept
     # out of the shading constraints and matted for visibility (Sec. 6.2). Without them the demo's
     # reflectance LMSE rose from 0.070 to 0.104 with the multi-view labels, 0.122 with the true ones.
-    start = time.perf_counter()
-    seg = segment(view.image, mask=quantities.valid, config=config.segmentation)
-    timings["segmentation"] = time.perf_counter() - start
+    seg = None
+    if config.matting is not None or not multiview:
+        start = time.perf_counter()
+        seg = segment(view.image, mask=quantities.valid, config=config.segmentation)
+        timings["segmentation"] = time.perf_counter() - start
     if multiview:
         shadow = labels
     else:
@@ -278,10 +346,56 @@ def step3_view(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray
         shadow = label_shadows(view.image, quantities, seg, sun_radiance, config=config.shadow)
         timings["shadow_mrf"] = time.perf_counter() - start
     start = time.perf_counter()
-    layers = intrinsic_layers(view, quantities, shadow.labels, sun_radiance, clusters=seg.labels,
-                              config=config.matting)
-    timings["matting"] = time.perf_counter() - start
+    if config.matting is None:
+        layers = label_layers(view, quantities, shadow.labels, sun_radiance)
+        timings["layers"] = time.perf_counter() - start
+    else:
+        layers = intrinsic_layers(view, quantities, shadow.labels, sun_radiance, clusters=seg.labels,
+                                  config=config.matting)
+        timings["matting"] = time.perf_counter() - start
     return Step3View(segmentation=seg, shadow=shadow, layers=layers, timings=timings)
+
+
+#: Standard deviation (pixels) of the Gaussian that softens the shadow labels into ``v_sun`` when
+#: the matting is skipped (``Config(matting=None)``): about a penumbra's width at the test scenes'
+#: resolution, so that a label edge is not a one-pixel step in the reflectance.
+LABEL_SOFTNESS = 0.7
+
+
+def label_layers(view: View, quantities: PixelQuantities, labels: np.ndarray, sun_radiance: np.ndarray
+                 ) -> IntrinsicLayers:
+    """The layers of a view straight from its shadow labels, without matting (``Config(matting=None)``).
+
+    ``v_sun`` is 1 on lit, 0 on shadow and the proxy's ``~v`` on undecided pixels, softened by a
+    Gaussian of :data:`LABEL_SOFTNESS` pixels (normalised over the valid pixels); ``S_sky`` and
+    ``S_ind`` are Step 1's per pixel; then Eqs. 2, 3 and 17 as in :func:`step2_layers`.
+
+    Parameters
+    ----------
+    view : View
+    quantities : PixelQuantities
+        The view's per-pixel Step-1 quantities.
+    labels : (H, W) uint8
+        0 shadow, 255 lit, 128 undecided.
+    sun_radiance : (3,) array_like
+        ``L_sun``.
+
+    Returns
+    -------
+    IntrinsicLayers
+    """
+    from scipy import ndimage
+
+    if view.stem != quantities.stem or view.camera.shape != quantities.shape or labels.shape != view.shape:
+        raise ValueError(f"quantities and labels must belong to view {view.stem!r}")
+    valid = quantities.valid
+    hard = np.where(labels == SHADOW_LABELS["lit"], 1.0,
+                    np.where(labels == SHADOW_LABELS["shadow"], 0.0, quantities.visibility))
+    weight = ndimage.gaussian_filter(valid.astype(np.float64), LABEL_SOFTNESS, mode="nearest")
+    soft = ndimage.gaussian_filter(np.where(valid, hard, 0.0), LABEL_SOFTNESS, mode="nearest")
+    visibility = np.clip(np.divide(soft, weight, out=hard.astype(np.float64), where=weight > 1e-6), 0.0, 1.0)
+    return layers_from_shading(view, valid, quantities.sky, quantities.indirect, visibility,  # Eqs. 2, 3, 17
+                               quantities.cosine, sun_radiance, labels)
 
 
 def step3(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance: np.ndarray, *,
@@ -362,6 +476,117 @@ def step4(scene: Scene, quantities: Mapping[str, PixelQuantities], layers: Mappi
                   config=config.env_refine)
 
 
+#: Longer side (pixels) below which ``Config.scale`` does not shrink the views: Step 2 walks 30 px
+#: from each boundary and the labels' edge radii reach 11 px, so much smaller working images lose
+#: the shadows (the demo's 240x180 views at scale 1/2 gave no light/shadow pair at all).
+MIN_WORKING_SIDE = 400
+
+
+def working_scale(scene: Scene, scale: float) -> float:
+    """The scale the views are decomposed at: ``scale``, but no smaller than :data:`MIN_WORKING_SIDE` allows."""
+    longest = max(max(v.shape) for v in scene.views)
+    return max(float(scale), min(1.0, MIN_WORKING_SIDE / longest))
+
+
+def _sun_pairs(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config, progress: bool
+               ) -> list[SunPairs]:
+    from tqdm.auto import tqdm
+
+    return [find_sun_pairs(view, quantities[view.stem], config=config.sun)
+            for view in tqdm(scene.views, desc="sun pairs", unit="view", disable=not progress)]
+
+
+#: Fewest shadow-edge samples whose contrast can overrule "no pair means no direct sun"
+#: (:func:`choose_direct_sun`): the demo's views at 160x120 give 65 samples at contrast 3.7.
+MIN_CONTRAST_SAMPLES = 30
+
+
+def choose_direct_sun(scene: Scene, quantities: Mapping[str, PixelQuantities], pairs: list[SunPairs], *,
+                      config: SunConfig | None = None) -> ModelChoice:
+    """Whether the scene has direct sun (beyond the paper; ``SunConfig(direct_sun="auto")``).
+
+    No direct sun when no light/shadow pair survived (Sec. 5), or when the contrast (upper quartile)
+    across the proxy's shadow edges (:func:`~mvintrinsic.sun_calibration.direct_sun_evidence`) is below
+    ``config.sun_contrast`` over at least ``config.contrast_samples`` samples (an overcast sky).
+
+    Parameters
+    ----------
+    scene : Scene
+    quantities : mapping of str to PixelQuantities
+        Per view (:func:`carry_to_pixels`).
+    pairs : list of SunPairs
+        Every view's light/shadow pairs (:func:`~mvintrinsic.sun_calibration.find_sun_pairs`).
+    config : SunConfig, optional
+
+    When no pair survived but the contrast is at least ``config.sun_contrast`` over at least
+    :data:`MIN_CONTRAST_SAMPLES` samples, the images show sun that Sec. 5 could not calibrate (e.g.
+    views too small for its 30 px walk): the choice is ``"unknown"`` and :func:`decompose` fails
+    as the paper's assumption does (:class:`~mvintrinsic.sun_calibration.SunCalibrationError`, or
+    ``L_sun = 0`` with a warning when ``Config.allow_missing_sun``), rather than calling a sunny
+    scene overcast.
+
+    Returns
+    -------
+    ModelChoice
+        ``choice`` ``"direct sun"``, ``"no direct sun"`` or ``"unknown"``; ``measures``: ``pairs``,
+        ``boundary_samples`` (of Sec. 5), ``contrast``, ``contrast_quartiles``, ``edge_samples``.
+    """
+    config = config_or_default(config, SunConfig)
+    contrast = direct_sun_evidence(scene.views, quantities)
+    n_pairs = int(sum(len(p.estimates) for p in pairs))
+    samples = int(sum(p.n_samples for p in pairs))
+    measures = {"pairs": n_pairs, "boundary_samples": samples,
+                "contrast": None if not np.isfinite(contrast.contrast) else contrast.contrast,
+                "contrast_quartiles": [float(x) if np.isfinite(x) else None for x in contrast.quartiles],
+                "edge_samples": contrast.samples}
+    figures = (f"contrast across the proxy's shadow edges {contrast.contrast:.2f} (upper quartile of "
+               f"{contrast.samples} samples; threshold {config.sun_contrast:g}); {n_pairs} light/shadow pairs")
+    if n_pairs == 0 and contrast.samples >= MIN_CONTRAST_SAMPLES and contrast.contrast >= config.sun_contrast:
+        choice, evidence = "unknown", (f"no light/shadow pair survived ({samples} boundary samples) although the "
+                                       f"images show direct sun: {figures}")
+    elif n_pairs == 0:
+        choice, evidence = "no direct sun", f"no light/shadow pair survived ({samples} boundary samples); {figures}"
+    elif contrast.samples >= config.contrast_samples and contrast.contrast < config.sun_contrast:
+        choice, evidence = "no direct sun", f"overcast: {figures}"
+    else:
+        choice, evidence = "direct sun", figures
+    if choice == "no direct sun":
+        logger.info("no direct sun: %s", evidence)
+    return ModelChoice(choice, evidence, measures)
+
+
+def environment_layers(view: View, quantities: PixelQuantities) -> IntrinsicLayers:
+    """The layers of a view without direct sun: ``R = I / S_env`` (Eq. 2 with ``L_sun = 0``).
+
+    Every valid pixel is labelled lit with ``v_sun = 1`` (there is no sun to shadow) and
+    ``S_sun = 0``; ``S_sky`` and ``S_ind`` are Step 1's per pixel, floored as everywhere
+    (:func:`~mvintrinsic.pixels.layers_from_shading`).
+    """
+    labels = np.full(view.shape, SHADOW_LABELS["lit"], np.uint8)
+    return layers_from_shading(view, quantities.valid, quantities.sky, quantities.indirect,
+                               np.ones(view.shape), quantities.cosine, np.zeros(3), labels)
+
+
+def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig) -> ModelChoice:
+    """Step 4 runs only where the labels hold shadow boundaries (``config.min_boundary_share``)."""
+    boundary = valid = 0
+    for layer in layers.values():
+        labels = layer.shadow_labels
+        shadow, lit = labels == SHADOW_LABELS["shadow"], labels == SHADOW_LABELS["lit"]
+        edge = np.zeros_like(shadow)
+        edge[1:] |= shadow[1:] & lit[:-1]
+        edge[:-1] |= shadow[:-1] & lit[1:]
+        edge[:, 1:] |= shadow[:, 1:] & lit[:, :-1]
+        edge[:, :-1] |= shadow[:, :-1] & lit[:, 1:]
+        boundary += int(edge.sum())
+        valid += int((shadow | lit).sum())
+    share = boundary / max(valid, 1)
+    measures = {"boundary_pixels": boundary, "labelled_pixels": valid, "boundary_share": share}
+    evidence = (f"{boundary} shadow-boundary pixels, {share:.2e} of the labelled pixels "
+                f"(threshold {config.min_boundary_share:g})")
+    return ModelChoice("run" if share >= config.min_boundary_share and boundary > 0 else "skipped", evidence, measures)
+
+
 def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
               progress: bool = False) -> Decomposition:
     """Decompose every view of a scene into reflectance and shading layers (Steps 1-4).
@@ -382,7 +607,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     Decomposition
         Per-view :class:`~mvintrinsic.results.IntrinsicLayers`, the :class:`Lighting` (sun
         radiance, fitted sky, horizon plane, environment map), seconds per stage summed over the
-        views (``depth_maps`` (cast once for the gains and Step 1), ``exposure``,
+        views (``downscale`` and ``upsample`` with ``config.scale < 1``, ``depth_maps`` (cast once
+        for the gains and Step 1), ``exposure``,
         ``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
         :func:`step3`, or ``layers`` with ``steps=2``; ``step4`` and its parts ``step4.<part>``)
         and ``config.to_dict()``.
@@ -390,7 +616,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     Raises
     ------
     SunCalibrationError
-        No light/shadow pair survived and ``config.allow_missing_sun`` is False.
+        With ``config.sun.direct_sun == "always"``: no light/shadow pair survived and
+        ``config.allow_missing_sun`` is False.
     """
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a Scene, got {type(scene).__name__}")
@@ -398,6 +625,12 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     timings: dict[str, float] = {}
 
     tracer = tracer if tracer is not None else Tracer(scene.proxy)
+    full = scene  # the photos' size; the working scene below when the working scale is below 1
+    scale = working_scale(scene, config.scale)
+    if scale < 1.0:
+        start = time.perf_counter()
+        scene = downscale_scene(scene, scale)
+        timings["downscale"] = time.perf_counter() - start
     start = time.perf_counter()
     depths = [depth_map(v.camera, tracer) for v in scene.views]  # cast once: the gains and Step 1
     timings["depth_maps"] = time.perf_counter() - start
@@ -405,6 +638,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     gains = estimate_view_gains(scene.views, tracer, config=config.exposure, depths=depths, rng=config.seed)
     if gains.applied:
         logger.info("exposure: compensating per-view gains (%s)", gains.reason)
+        if scale < 1.0:
+            full = compensate(full, gains)
         scene = compensate(scene, gains)
     timings["exposure"] = time.perf_counter() - start
 
@@ -418,21 +653,39 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
 
     logger.info("step 2: sun calibration over %d views", len(scene.views))
     start = time.perf_counter()
-    calibration = calibrate(scene, quantities, config=config, progress=progress)
+    model: dict[str, ModelChoice] = {}
+    if config.sun.direct_sun == "always":
+        calibration = calibrate(scene, quantities, config=config, progress=progress)
+        sun_radiance = calibration.sun_radiance
+    else:
+        pairs = _sun_pairs(scene, quantities, config=config, progress=progress)
+        model["sun"] = choose_direct_sun(scene, quantities, pairs, config=config.sun)
+        sun_radiance = np.zeros(3)
+        if model["sun"].choice == "direct sun":
+            sun_radiance = calibrate_sun(pairs).sun_radiance
+        elif model["sun"].choice == "unknown":  # sunny, but Sec. 5 found no pair: fail as the paper does
+            sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
     timings["sun_pairs"] = time.perf_counter() - start
 
-    if config.steps == 2:
+    if "sun" in model and model["sun"].choice == "no direct sun":
+        # R = I / S_env (Eq. 2 with L_sun = 0): no shadow to label, nothing for Step 4 to correct.
         start = time.perf_counter()
-        layers = {view.stem: step2_layers(view, quantities[view.stem], calibration.sun_radiance)
-                  for view in scene.views}
+        layers = {view.stem: environment_layers(view, quantities[view.stem]) for view in scene.views}
+        timings["layers"] = time.perf_counter() - start
+        if config.steps == 4:
+            model["step4"] = ModelChoice("skipped", "no direct sun, so no shadow boundary", {})
+    elif config.steps == 2:
+        start = time.perf_counter()
+        layers = {view.stem: step2_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
         timings["layers"] = time.perf_counter() - start
     else:
         logger.info("step 3 (%s labelling) over %d views", config.shadow.method, len(scene.views))
-        views, step3_timings, shared = _step3(scene, quantities, calibration.sun_radiance, config=config,
-                                              progress=progress)
+        views, step3_timings, shared = _step3(scene, quantities, sun_radiance, config=config, progress=progress)
         layers = {stem: result.layers for stem, result in views.items()}
         timings.update(step3_timings)
         if config.steps == 4:
+            model["step4"] = _choose_step4(layers, config.env_refine)
+        if config.steps == 4 and model["step4"].choice == "run":
             logger.info("step 4 (%s) over %d views", config.env_refine.method, len(scene.views))
             start = time.perf_counter()
             refined = step4(scene, quantities, layers, config=config,
@@ -441,14 +694,18 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
             timings["step4"] = time.perf_counter() - start
             timings.update({f"step4.{k}": v for k, v in refined.timings.items()})
 
+    if scale < 1.0:  # the layers at the photos' size
+        start = time.perf_counter()
+        layers = {view.stem: upsample_layers(view, layers[view.stem]) for view in full.views}
+        timings["upsample"] = time.perf_counter() - start
     if gains.applied:  # the shading back in each photo's units, so that R * S reproduces it
         layers = {stem: restore_units(layer, gains.of(stem)) for stem, layer in layers.items()}
     sky = s1.sky_model
     lighting = Lighting(
-        sun=scene.sun, sun_radiance=calibration.sun_radiance, up=scene.up,
+        sun=scene.sun, sun_radiance=sun_radiance, up=scene.up,
         sky=SkyParameters(model="preetham", turbidity=float(sky.turbidity), scale=np.asarray(sky.scale),
                           residual=float(sky.residual)),
         horizon_plane=s1.horizon.plane, envmap=s1.environment.radiance, exposure=gains,
-        horizon_evidence=s1.horizon.evidence,
+        horizon_evidence=s1.horizon.evidence, model=model,
     )
     return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config.to_dict())

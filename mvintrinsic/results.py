@@ -23,7 +23,7 @@ from ._validation import as_array, as_unit_vector, describe
 from ._version import __version__
 from .scene import Sun
 
-__all__ = ["SHADOW_LABELS", "Decomposition", "IntrinsicLayers", "Lighting", "SkyParameters", "ViewGains"]
+__all__ = ["SHADOW_LABELS", "Decomposition", "IntrinsicLayers", "Lighting", "ModelChoice", "SkyParameters", "ViewGains"]
 
 #: 8-bit codes of ``IntrinsicLayers.shadow_labels``.
 SHADOW_LABELS: dict[str, int] = {"shadow": 0, "undecided": 128, "lit": 255}
@@ -111,6 +111,42 @@ class IntrinsicLayers:
     def __repr__(self) -> str:
         h, w = self.shape
         return f"IntrinsicLayers({self.stem!r}, {w}x{h})"
+
+
+@dataclass(frozen=True)
+class ModelChoice:
+    """One choice of the model made from the data, and its evidence (``lighting.json`` "model").
+
+    Parameters
+    ----------
+    choice : str
+        What was chosen, e.g. ``"direct sun"`` / ``"no direct sun"`` or ``"run"`` / ``"skipped"``.
+    evidence : str
+        Why, in one sentence with the figures.
+    measures : mapping of str to float, int, bool or None
+        The figures the choice was made on (JSON-ready).
+    """
+
+    choice: str
+    evidence: str
+    measures: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in ("choice", "evidence"):
+            if not isinstance(getattr(self, name), str):
+                raise TypeError(f"{name} must be a str, got {describe(getattr(self, name))}")
+        if not isinstance(self.measures, Mapping):
+            raise TypeError(f"measures must be a mapping, got {describe(self.measures)}")
+        object.__setattr__(self, "measures", MappingProxyType(dict(self.measures)))
+
+    def to_dict(self) -> dict[str, Any]:
+        """``{"choice", "evidence", "measures"}``."""
+        return {"choice": self.choice, "evidence": self.evidence, "measures": dict(self.measures)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> ModelChoice:
+        """Inverse of :meth:`to_dict`."""
+        return cls(data["choice"], data["evidence"], data.get("measures", {}))
 
 
 @dataclass(frozen=True, eq=False)
@@ -284,6 +320,10 @@ class Lighting:
     exposure : ViewGains, optional
         Per-view exposure and white-balance gains; the layers of view ``k`` are in that view's
         units, ``S_sun = gain_k * sun_radiance * max(0, cos w_sun)``. None: every gain 1.
+    model : mapping of str to ModelChoice, optional
+        The choices of the model made from the data and their evidence (beyond the paper):
+        ``"sun"`` (direct sun or none, :func:`mvintrinsic.sun_calibration.direct_sun_evidence`),
+        ``"step4"`` (run or skipped for want of shadow boundaries).
     """
 
     sun: Sun
@@ -294,6 +334,7 @@ class Lighting:
     envmap: np.ndarray | None = None
     horizon_evidence: str | None = None
     exposure: ViewGains | None = None
+    model: Mapping[str, ModelChoice] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         if not isinstance(self.sun, Sun):
@@ -319,6 +360,9 @@ class Lighting:
             raise ValueError(f"horizon_evidence must be 'proxy plane', 'up' or None, got {self.horizon_evidence!r}")
         if self.exposure is not None and not isinstance(self.exposure, ViewGains):
             raise TypeError(f"exposure must be ViewGains or None, got {describe(self.exposure)}")
+        if not isinstance(self.model, Mapping) or not all(isinstance(v, ModelChoice) for v in self.model.values()):
+            raise TypeError(f"model must be a mapping of str to ModelChoice, got {describe(self.model)}")
+        object.__setattr__(self, "model", MappingProxyType(dict(self.model)))
 
     def gain(self, stem: str) -> np.ndarray:
         """Exposure gain of view ``stem`` (ones without :attr:`exposure`), (3,) float64."""
@@ -335,6 +379,7 @@ class Lighting:
             "horizon_plane": None if self.horizon_plane is None else self.horizon_plane.tolist(),
             "horizon_evidence": self.horizon_evidence,
             "exposure": None if self.exposure is None else self.exposure.to_dict(),
+            "model": {name: choice.to_dict() for name, choice in self.model.items()},
         }
 
 

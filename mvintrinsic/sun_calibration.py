@@ -43,6 +43,8 @@ from .pixels import PixelQuantities, masked_box_mean, nearest_fill
 from .scene import View
 
 __all__ = [
+    "SunContrast",
+    "direct_sun_evidence",
     "REJECTION_RULES",
     "SunCalibration",
     "SunCalibrationError",
@@ -107,6 +109,22 @@ class SunConfig:
         shadow and lit regions separately, before the brightest/darkest choice and Eq. 5; 1 uses
         raw pixels as the paper does. Picking the extreme of 30 noisy pixels biases ``L_sun`` up
         (the darkest shadow pixel is darkest partly by noise); see ``docs/step2.md``.
+    direct_sun : {"auto", "always"}
+        Whether the scene has direct sun at all (beyond the paper, which assumes it): ``"auto"``
+        decides from the images (:func:`direct_sun_evidence`) and from the pairs (none surviving
+        means no direct sun), and without direct sun the layers are ``R = I / S_env``;
+        ``"always"`` is the paper (no pair: :class:`SunCalibrationError` unless missing sun is
+        allowed).
+    sun_contrast : float
+        ``"auto"``: direct sun is absent when the upper quartile of the contrast across the
+        proxy's shadow edges (:func:`direct_sun_evidence`, ``1 + E_sun / E_env`` where the proxy's
+        edge is right) is below this: not even a quarter of the edge samples show the sun bringing
+        as much irradiance as the environment. Measured (``docs/presets.md``): 0.92-1.58 on an
+        overcast render (working scales 1 to 0.35), 2.8-5.0 on five sunny scenes, where the
+        median, pulled to 1 by the proxy's misplaced edges, fell to 1.06-1.43 on three.
+    contrast_samples : int
+        Fewest shadow-edge samples for the contrast to decide; with fewer (no proxy shadow in
+        view) the pairs decide alone.
     """
 
     n_clusters: int = 4
@@ -119,6 +137,9 @@ class SunConfig:
     smoothing: int = 5
     normal_sigma: float = 3.0
     pick: str = "extreme"
+    direct_sun: str = "auto"
+    sun_contrast: float = 2.0
+    contrast_samples: int = 500
 
     def __post_init__(self) -> None:
         for name, least in (("n_clusters", 2), ("walk", 1), ("boundary_step", 1), ("smoothing", 1)):
@@ -128,6 +149,13 @@ class SunConfig:
         for name in ("chroma_tolerance", "depth_edge", "normal_edge"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)!r}")
+        if self.direct_sun not in ("auto", "always"):
+            raise ValueError(f"direct_sun must be 'auto' or 'always', got {self.direct_sun!r}")
+        if not self.sun_contrast >= 1.0:
+            raise ValueError(f"sun_contrast must be >= 1, got {self.sun_contrast!r}")
+        if isinstance(self.contrast_samples, bool) or not isinstance(self.contrast_samples, int) or \
+                self.contrast_samples < 1:
+            raise ValueError(f"contrast_samples must be a positive integer, got {self.contrast_samples!r}")
         if self.pick not in ("extreme", "median"):
             raise ValueError(f"pick must be 'extreme' or 'median', got {self.pick!r}")
         if not self.normal_sigma >= 0:
@@ -523,3 +551,91 @@ def calibrate_sun(pairs: Sequence[SunPairs], *, allow_missing: bool = False) -> 
     logger.info("L_sun = %s from %d pairs", np.round(median, 4).tolist(), len(estimates))
     return SunCalibration(median, spread, np.percentile(estimates, [25, 75], axis=0), pairs,
                           MappingProxyType(rejected))
+
+
+# ---------------------------------------------------------------------------------------------
+# is there direct sun at all? (beyond the paper)
+# ---------------------------------------------------------------------------------------------
+#: Pixels on each side of a proxy shadow edge that :func:`direct_sun_evidence` reads: the shadow
+#: sample lies 2 to 8 px from the proxy's lit region (its edge is a few pixels off on an MVS proxy),
+#: the lit sample 2 px beyond the nearest lit pixel.
+EDGE_OFFSETS = (2, 8)
+
+
+@dataclass(frozen=True)
+class SunContrast:
+    """The median light/shadow contrast across the proxy's cast-shadow edges (:func:`direct_sun_evidence`).
+
+    Parameters
+    ----------
+    contrast : float
+        Upper quartile over the samples of ``(I_lit / I_shadow) / (E_lit / E_shadow)``,
+        ``E = S_sky + S_ind`` (Step 1): about 1 without direct sun, ``1 + E_sun / E_env`` of the lit
+        pixel with it where the proxy's edge is the true one. The upper quartile, not the median:
+        where an MVS proxy misplaces a shadow edge both samples lie on one side and give about 1,
+        which pulled the median of sunny scenes down to 1.06-1.43. NaN without samples.
+    quartiles : (3,) float64
+        The 25th, 50th and 75th percentiles.
+    samples : int
+        Shadow-edge samples read, over all views.
+    """
+
+    contrast: float
+    quartiles: np.ndarray
+    samples: int
+
+
+def direct_sun_evidence(views: Sequence[View], quantities: Mapping[str, PixelQuantities]) -> SunContrast:
+    """How much brighter the images are on the lit side of the proxy's shadow edges than Step 1 explains.
+
+    Beyond the paper, which assumes direct sun. Per view, every valid pixel the proxy puts in the
+    cast shadow (``~v <= 0.1``) between 2 and 8 px from its lit region (``~v >= 0.9``,
+    ``cos omega_sun >= 0.2``) is paired with the lit pixel 2 px beyond the nearest one
+    (:data:`EDGE_OFFSETS`). Under Eq. 1, with ``E = S_sky + S_ind`` from Step 1 and the same
+    reflectance on both sides,
+
+    .. math::
+
+        \rho = \frac{I_{lit} / I_{shadow}}{E_{lit} / E_{shadow}} = 1 + \frac{L_{sun} \\cos\\omega_{sun}}{E_{lit}},
+
+    so without direct sun ``rho`` is 1 whatever the reflectances (their changes across the edge
+    spread it both ways), and with it the samples where the proxy's edge is right are well above 1. No pair is selected by brightness (the sun pairs of Sec. 5 are, which biases them up:
+    on an overcast render their estimates implied ``rho`` about 3); reflectance changes across the
+    edge only widen the spread.
+
+    Parameters
+    ----------
+    views : sequence of View
+    quantities : mapping of str to PixelQuantities
+        Per view, Step 1's quantities at the pixels.
+
+    Returns
+    -------
+    SunContrast
+    """
+    logs = []
+    near, far = EDGE_OFFSETS
+    for view in views:
+        q = quantities[view.stem]
+        image = luminance(np.asarray(view.image, dtype=np.float64))
+        env = luminance(np.asarray(q.sky, dtype=np.float64) + q.indirect)
+        ok = q.valid & (image > 0) & (env > 0)
+        lit = ok & (q.visibility >= 0.9) & (q.cosine >= 0.2)
+        shadow = ok & (q.visibility <= 0.1)
+        if not lit.any() or not shadow.any():
+            continue
+        distance, (rows, cols) = ndimage.distance_transform_edt(~lit, return_indices=True)
+        ys, xs = np.nonzero(shadow & (distance >= near) & (distance <= far))
+        ly, lx = rows[ys, xs], cols[ys, xs]
+        dy, dx = ly - ys, lx - xs
+        norm = np.maximum(np.hypot(dy, dx), 1e-9)
+        ly = np.clip(np.round(ly + near * dy / norm).astype(int), 0, image.shape[0] - 1)
+        lx = np.clip(np.round(lx + near * dx / norm).astype(int), 0, image.shape[1] - 1)
+        good = lit[ly, lx]
+        ys, xs, ly, lx = ys[good], xs[good], ly[good], lx[good]
+        logs.append(np.log(image[ly, lx] / image[ys, xs]) - np.log(env[ly, lx] / env[ys, xs]))
+    logs = np.concatenate(logs) if logs else np.zeros(0)
+    if len(logs) == 0:
+        return SunContrast(float("nan"), np.full(3, np.nan), 0)
+    quartiles = np.exp(np.percentile(logs, [25, 50, 75]))
+    return SunContrast(float(quartiles[2]), quartiles, len(logs))

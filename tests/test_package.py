@@ -19,7 +19,7 @@ PACKAGE = Path(mvintrinsic.__file__).parent
 # core, and the core never imports the edge (docs/architecture.md).
 CORE_LAYERS = [
     "_version", "_validation", "_libusb", "camera", "scene", "results", "image_model", "skymodel", "raytrace",
-    "sun_position", "exposure", "pixels", "correspondence", "sun_calibration", "segmentation", "shadow_mrf",
+    "sun_position", "exposure", "pixels", "resolution", "correspondence", "sun_calibration", "segmentation", "shadow_mrf",
     "multiview_shadows", "matting", "env_refine", "relight", "pipeline",
 ]
 EDGE = {"io", "metrics", "cli", "evaluation", "preview", "__init__"}

@@ -406,7 +406,7 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     else:
         relit = tuple(t for t in args.relit.split(",") if t) if args.relit != "none" else ()
     config = SynthConfig(n_views=args.views, width=args.size[0], height=args.size[1], seed=args.seed,
-                         gloss=args.gloss, hfov_deg=args.hfov, relit=relit)
+                         gloss=args.gloss, hfov_deg=args.hfov, relit=relit, occluders=not args.no_occluders)
     if args.sun is not None:
         config = with_overrides(config, sun_azimuth_deg=args.sun[0], sun_elevation_deg=args.sun[1])
     changes = {"render_spp": args.spp, "render_sun": not args.overcast, "render_turbidity": args.turbidity,
@@ -425,8 +425,8 @@ def _cmd_synth(args: argparse.Namespace) -> int:
     print("seconds per render: " + ", ".join(f"{k} {v:.1f}" for k, v in per.items() if v is not None)
           + f"; total {info['seconds_total']:.0f} s")
     q = info["proxy"]
-    print(f"proxy: {q['vertices']} vertices, {q['within_10cm']:.1%} within 10 cm of the exact mesh, "
-          f"foliage retention {q['foliage_retention']:.1%}")
+    foliage = "no foliage" if q["foliage_retention"] is None else f"foliage retention {q['foliage_retention']:.1%}"
+    print(f"proxy: {q['vertices']} vertices, {q['within_10cm']:.1%} within 10 cm of the exact mesh, {foliage}")
     return 0
 
 
@@ -489,6 +489,9 @@ def build_parser() -> argparse.ArgumentParser:
                        help="--sky simulated: aerosol density multiplier (default 20: optical depth ~0.11)")
     synth.add_argument("--overcast", action="store_true", help="sun off (sky only)")
     synth.add_argument("--gloss", action="store_true", help="mildly glossy materials (stress test)")
+    synth.add_argument("--no-occluders", action="store_true",
+                       help="ground and plain box buildings only: no cast shadow in view for a sun in front "
+                            "of the facades (synth.recipes.build_scene(occluders=False))")
     synth.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(run=_cmd_synth)

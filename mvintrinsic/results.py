@@ -252,19 +252,24 @@ class SkyParameters:
     Parameters
     ----------
     model : str
-        Sky model name, e.g. ``"perez"`` / ``"preetham"``.
+        Sky model name: ``"preetham"``, ``"perez"`` or ``"constant"``
+        (:data:`mvintrinsic.skymodel.SKY_MODELS`).
     turbidity : float
-        Atmospheric turbidity ``t`` (> 0).
+        Atmospheric turbidity ``t`` (> 0) of the Preetham coefficients (``"perez"``: of its
+        chromaticities and of the fit its coefficients started from).
     scale : (3,) float64
         Per-channel scale ``k`` from the sky model's relative luminance to image radiance.
     residual : float
         Fit residual (RMS over the known sky pixels, image units).
+    coefficients : (5,) float64, optional
+        The Perez coefficients ``A..E`` of the luminance, model ``"perez"`` only.
     """
 
     model: str
     turbidity: float
     scale: np.ndarray
     residual: float
+    coefficients: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.model, str) or not self.model:
@@ -276,15 +281,21 @@ class SkyParameters:
         object.__setattr__(self, "turbidity", float(self.turbidity))
         object.__setattr__(self, "residual", float(self.residual))
         object.__setattr__(self, "scale", as_array(self.scale, "scale", shape=(3,), dtype=np.float64))
+        if self.coefficients is not None:
+            object.__setattr__(self, "coefficients",
+                               as_array(self.coefficients, "coefficients", shape=(5,), dtype=np.float64))
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (``lighting.json["sky"]``)."""
-        return {"model": self.model, "turbidity": self.turbidity, "scale": self.scale.tolist(), "residual": self.residual}
+        out = {"model": self.model, "turbidity": self.turbidity, "scale": self.scale.tolist(), "residual": self.residual}
+        if self.coefficients is not None:
+            out["coefficients"] = self.coefficients.tolist()
+        return out
 
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> SkyParameters:
         """Inverse of :meth:`to_dict`."""
-        return cls(data["model"], data["turbidity"], data["scale"], data["residual"])
+        return cls(data["model"], data["turbidity"], data["scale"], data["residual"], data.get("coefficients"))
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, SkyParameters):

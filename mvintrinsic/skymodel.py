@@ -44,15 +44,17 @@ from __future__ import annotations
 
 import math
 import warnings
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 import scipy.optimize
 import scipy.sparse
 import scipy.sparse.linalg
 
-from ._validation import as_array, as_unit_vector, config_or_default, describe
+from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .image_model import luminance
 from .results import SkyParameters
 from .scene import View
@@ -80,8 +82,10 @@ __all__ = [
     "preetham_perez_coefficients",
     "preetham_relative_rgb",
     "preetham_zenith_chromaticity",
+    "select_sky_model",
     "sky_fit_outliers",
     "texel_solid_angles",
+    "SKY_MODELS",
 ]
 
 _Z_UP = (0.0, 0.0, 1.0)
@@ -166,6 +170,15 @@ class SkyConfig:
         its normal, and real multi-view-stereo meshes often lack a dense ground (a facade, a
         roof cap). ``"auto"`` (default): the plane when RANSAC finds one, else ``"up"``; the
         evidence used is recorded in the result (``horizon_evidence`` of ``lighting.json``).
+    model : {"auto", "preetham", "perez", "constant"}
+        The sky family fitted by Eq. (4) (:data:`SKY_MODELS`). ``"preetham"`` (default) is the
+        paper's; ``"auto"`` (beyond the paper) picks the family with the lowest error on sky
+        texels held out from the fit (:func:`select_sky_model`), preferring the simpler one
+        within ``model_margin``; its evidence is kept in :attr:`SkyModel.evidence`.
+    model_folds : int
+        Contiguous sectors of azimuth the sky texels are split into for the held-out errors.
+    model_margin : float
+        A simpler family whose held-out error is within this fraction of the best is chosen.
     """
 
     envmap_height: int = 64
@@ -186,10 +199,20 @@ class SkyConfig:
     horizon_max_points: int = 20_000
     horizon_min_contrast: float = 3.0
     horizon: str = "auto"
+    model: str = "preetham"
+    model_folds: int = 5
+    model_margin: float = 0.05
 
     def __post_init__(self) -> None:
         if self.horizon not in ("auto", "plane", "up"):
             raise ValueError(f"horizon must be 'auto', 'plane' or 'up', got {self.horizon!r}")
+        if self.model != "auto" and self.model not in SKY_MODELS:
+            raise ValueError(f"model must be 'auto' or one of {SKY_MODELS}, got {self.model!r}")
+        if not (is_real(self.model_margin) and 0.0 <= self.model_margin < math.inf):
+            raise ValueError(f"model_margin must be a non-negative number, got {self.model_margin!r}")
+        if isinstance(self.model_folds, bool) or not isinstance(self.model_folds, (int, np.integer)) or \
+                self.model_folds < 2:
+            raise ValueError(f"model_folds must be an integer >= 2, got {self.model_folds!r}")
         for name in ("envmap_height", "max_iter", "min_texels", "horizon_iterations", "horizon_max_points"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
@@ -896,8 +919,13 @@ def _perez(coeffs: np.ndarray, cos_theta: np.ndarray, gamma: np.ndarray) -> np.n
     return (1.0 + a * np.exp(b / cos_theta)) * (1.0 + c * np.exp(d * gamma) + e * np.cos(gamma) ** 2)
 
 
-def _preetham(directions: np.ndarray, sun: np.ndarray, turbidity: float, up: np.ndarray) -> np.ndarray:
-    """Unchecked core of :func:`preetham_relative_rgb` (unit inputs)."""
+def _preetham(directions: np.ndarray, sun: np.ndarray, turbidity: float, up: np.ndarray,
+              luminance_coefficients: np.ndarray | None = None) -> np.ndarray:
+    """Unchecked core of :func:`preetham_relative_rgb` (unit inputs).
+
+    ``luminance_coefficients`` (5,) replace Preetham's ``A..E`` of the luminance ``Y`` (the free
+    Perez sky of :class:`SkyModel`, ``model="perez"``); the chromaticities stay Preetham's.
+    """
     height = directions @ up
     below = height < 0
     if below.any():  # mirror into the upper hemisphere, where the model is defined
@@ -906,6 +934,8 @@ def _preetham(directions: np.ndarray, sun: np.ndarray, turbidity: float, up: np.
     gamma = np.arccos(np.clip(directions @ sun, -1.0, 1.0))
     theta_s = math.acos(min(1.0, max(0.0, float(sun @ up))))
     coeffs = preetham_perez_coefficients(turbidity)
+    if luminance_coefficients is not None:
+        coeffs = np.concatenate([np.asarray(luminance_coefficients, dtype=np.float64)[None], coeffs[1:]])
     x_z, y_z = preetham_zenith_chromaticity(turbidity, theta_s)
     one, ts = np.ones(1), np.array([theta_s])
     # Preetham et al. 1999, Eq. (3) relative to the zenith: Q = Q_z F(θ, γ) / F(0, θs), Q in {Y, x, y}
@@ -999,8 +1029,16 @@ class SkyModel:
         Zenith, world frame.
     n_texels : int
         Number of texels fitted.
-    model : str
-        ``"preetham"``.
+    model : {"preetham", "perez", "constant"}
+        The sky family (:data:`SKY_MODELS`): ``"preetham"``, the paper's Perez distribution with
+        Preetham's turbidity-dependent coefficients; ``"perez"``, the five Perez coefficients of
+        the luminance fitted freely (``coefficients``), the chromaticities Preetham's at
+        ``turbidity``; ``"constant"``, the same radiance ``k`` in every direction (``f = 1``).
+    coefficients : (5,) float64, optional
+        ``A..E`` of the luminance distribution, ``model="perez"`` only.
+    evidence : mapping, optional
+        How the model was chosen (:func:`select_sky_model`): the held-out errors of the
+        candidates, the folds and texels; empty when the model was given.
     """
 
     turbidity: float
@@ -1012,6 +1050,8 @@ class SkyModel:
     up: np.ndarray
     n_texels: int
     model: str = "preetham"
+    coefficients: np.ndarray | None = None
+    evidence: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "turbidity", _check_turbidity(self.turbidity))
@@ -1032,8 +1072,22 @@ class SkyModel:
             raise ValueError(f"sun_direction {sun.tolist()} must be above the horizon (sun_direction · up > 0)")
         object.__setattr__(self, "up", up)
         object.__setattr__(self, "sun_direction", sun)
-        if self.model != "preetham":
-            raise ValueError(f"model must be 'preetham' (the only sky model implemented), got {self.model!r}")
+        if self.model not in SKY_MODELS:
+            raise ValueError(f"model must be one of {SKY_MODELS}, got {self.model!r}")
+        if (self.model == "perez") != (self.coefficients is not None):
+            raise ValueError("coefficients must be given for model 'perez' and only for it")
+        if self.coefficients is not None:
+            object.__setattr__(self, "coefficients", as_array(self.coefficients, "coefficients", shape=(5,),
+                                                              dtype=np.float64))
+        if not isinstance(self.evidence, Mapping):
+            raise TypeError(f"evidence must be a mapping, got {describe(self.evidence)}")
+        object.__setattr__(self, "evidence", MappingProxyType(dict(self.evidence)))
+
+    def relative(self, directions: np.ndarray) -> np.ndarray:
+        """``f`` of Eq. (4) toward unit world directions ``(N, 3)``, before the scale ``k``, (N, 3)."""
+        if self.model == "constant":
+            return np.ones((len(directions), 3))
+        return _preetham(directions, self.sun_direction, self.turbidity, self.up, self.coefficients)
 
     def radiance(self, directions: object) -> np.ndarray:
         """Sky radiance ``k ⊙ f`` toward world directions ``(N, 3)``: ``(N, 3)`` float64, image units.
@@ -1043,11 +1097,12 @@ class SkyModel:
         :func:`preetham_relative_rgb`).
         """
         d = _unit_rows(directions, "directions")
-        return np.maximum(self.scale * _preetham(d, self.sun_direction, self.turbidity, self.up), 0.0)
+        return np.maximum(self.scale * self.relative(d), 0.0)
 
     def to_parameters(self) -> SkyParameters:
         """The JSON summary (:class:`mvintrinsic.results.SkyParameters`)."""
-        return SkyParameters(model=self.model, turbidity=self.turbidity, scale=self.scale, residual=self.residual)
+        return SkyParameters(model=self.model, turbidity=self.turbidity, scale=self.scale, residual=self.residual,
+                             coefficients=self.coefficients)
 
     def __repr__(self) -> str:
         return (
@@ -1064,6 +1119,82 @@ def _best_scale(f: np.ndarray, a: np.ndarray, w: np.ndarray) -> np.ndarray:
     return np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
 
 
+#: The sky families of :class:`SkyModel`, from the fewest parameters to the most.
+SKY_MODELS = ("constant", "preetham", "perez")
+
+#: Weight of the prior that keeps the free Perez coefficients near Preetham's at the fitted
+#: turbidity (``model="perez"``): added to the normalised objective as this times the mean squared
+#: coefficient change over ``|c_Preetham| + 0.1``. Where the views see sky, the data moves the
+#: coefficients (an objective change of 1e-2 is 1% of the sky's energy); near the sun, which no
+#: view sees, the prior keeps Preetham's circumsolar shape instead of an unconstrained one.
+#: Measured against Mitsuba's sky (solid-angle-weighted model / truth within 5-30 and 30-60
+#: degrees of the sun, R/G/B; scratch, docs/presets.md): courtyard_s1 Preetham 1.05/1.20/1.31 and
+#: 1.30/1.23/1.18, free Perez with 1e-3 1.17/1.35/1.49 and 1.28/1.25/1.22, with 1e-2 1.10/1.27/1.39
+#: and 1.21/1.18/1.15; the demo Preetham 1.22/1.32/1.40 and 1.42/1.30/1.23, 1e-3 1.14/1.23/1.32 and
+#: 1.25/1.16/1.12, 1e-2 1.11/1.20/1.28 and 1.23/1.14/1.09.
+PEREZ_PRIOR = 1e-2
+
+
+def _check_fit_inputs(directions: object, radiance: object, sun_direction: object, up: object,
+                      weights: object | None, config: SkyConfig
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Validated ``(d, a, w, sun, up, energy)`` of the texels with a positive weight (:func:`fit_sky`)."""
+    d = _unit_rows(directions, "directions")
+    a = as_array(radiance, "radiance", shape=(len(d), 3), dtype=np.float64)
+    if (a < 0).any():
+        raise ValueError("radiance must be non-negative")
+    if weights is None:
+        w = np.ones(len(d))
+    else:
+        w = as_array(weights, "weights", shape=(len(d),), dtype=np.float64)
+        if (w < 0).any():
+            raise ValueError("weights must be non-negative")
+    up = as_unit_vector(up, "up")
+    sun = as_unit_vector(sun_direction, "sun_direction")
+    if sun @ up <= 0:
+        raise ValueError(f"sun_direction {sun.tolist()} must be above the horizon (sun_direction · up > 0)")
+    used = w > 0
+    n = int(used.sum())
+    if n < config.min_texels:
+        raise SkyFitError(f"too few sky texels to fit the sky model: {n} (need at least {config.min_texels}): the "
+                          "views show too little bright sky above the horizon (sky-less, black or grey images?)")
+    d, a, w = d[used], a[used], w[used]
+    energy = float((w[:, None] * a * a).sum())
+    if energy <= 0:
+        raise SkyFitError(f"the {n} sky texels are all black; the sky model cannot be fitted")
+    return d, a, w, sun, up, energy
+
+
+def _model_residual(f: np.ndarray, k: np.ndarray, a: np.ndarray, w: np.ndarray) -> float:
+    return math.sqrt(float((w[:, None] * (f * k - a) ** 2).sum()) / (3.0 * float(w.sum())))
+
+
+def _fit_perez(preetham: SkyModel, d: np.ndarray, a: np.ndarray, w: np.ndarray, energy: float,
+               config: SkyConfig) -> SkyModel:
+    """The five luminance coefficients of the Perez distribution, from Preetham's at its turbidity."""
+    start = preetham_perez_coefficients(preetham.turbidity)[0]
+    spread = np.abs(start) + 0.1
+    sun, up, t = preetham.sun_direction, preetham.up, preetham.turbidity
+    check = envmap_directions(16, up=up).reshape(-1, 3)
+    check = np.concatenate([check[check @ up > 0], sun[None]])  # the whole sky, the sun included
+
+    def objective(c: np.ndarray) -> float:
+        f = _preetham(d, sun, t, up, c)
+        if not np.isfinite(f).all() or not (_preetham(check, sun, t, up, c)[:, 1] > 0).all():
+            return 2.0 + float(np.sum(((c - start) / spread) ** 2))  # worse than k = 0 (error 1)
+        k = _best_scale(f, a, w)
+        err = float((w[:, None] * (f * k - a) ** 2).sum()) / energy
+        return err + PEREZ_PRIOR * float(np.mean(((c - start) / spread) ** 2))
+
+    result = scipy.optimize.minimize(objective, x0=start, method="Nelder-Mead",
+                                     options={"maxiter": 200 * 5, "xatol": 1e-4, "fatol": config.fatol})
+    c = result.x if objective(result.x) < objective(start) else start
+    f = _preetham(d, sun, t, up, c)
+    k = np.maximum(_best_scale(f, a, w), 0.0)
+    return replace(preetham, model="perez", coefficients=c, scale=k, residual=_model_residual(f, k, a, w),
+                   converged=bool(result.success), n_iter=preetham.n_iter + int(result.nit))
+
+
 def fit_sky(
     directions: object,
     radiance: object,
@@ -1072,8 +1203,9 @@ def fit_sky(
     up: object = _Z_UP,
     config: SkyConfig | None = None,
     weights: object | None = None,
+    model: str = "preetham",
 ) -> SkyModel:
-    """Fit the Preetham sky to observed sky texels (paper Eq. 4).
+    """Fit the Preetham sky (or another :data:`SKY_MODELS` family) to observed sky texels (paper Eq. 4).
 
     .. math::
 
@@ -1103,6 +1235,12 @@ def fit_sky(
     config : SkyConfig, optional
     weights : (N,) array_like, optional
         Non-negative weight ``w_p`` of each texel (e.g. its solid angle); default 1.
+    model : {"preetham", "perez", "constant"}, optional
+        ``"preetham"`` (the paper, default) as above. ``"constant"``: ``f = 1``, ``k`` the
+        weighted mean radiance (an overcast or barely seen sky). ``"perez"`` (beyond the paper):
+        Preetham's fit, then the five Perez coefficients of the luminance freed (Nelder-Mead from
+        Preetham's, with the weak prior :data:`PEREZ_PRIOR` toward them and a positive sky
+        everywhere), the chromaticities kept.
 
     Returns
     -------
@@ -1115,30 +1253,16 @@ def fit_sky(
         is zero.
     """
     config = config_or_default(config, SkyConfig)
-    d = _unit_rows(directions, "directions")
-    a = as_array(radiance, "radiance", shape=(len(d), 3), dtype=np.float64)
-    if (a < 0).any():
-        raise ValueError("radiance must be non-negative")
-    if weights is None:
-        w = np.ones(len(d))
-    else:
-        w = as_array(weights, "weights", shape=(len(d),), dtype=np.float64)
-        if (w < 0).any():
-            raise ValueError("weights must be non-negative")
-    up = as_unit_vector(up, "up")
-    sun = as_unit_vector(sun_direction, "sun_direction")
-    if sun @ up <= 0:
-        raise ValueError(f"sun_direction {sun.tolist()} must be above the horizon (sun_direction · up > 0)")
-    used = w > 0
-    n = int(used.sum())
-    if n < config.min_texels:
-        raise SkyFitError(f"too few sky texels to fit the sky model: {n} (need at least {config.min_texels}): the "
-                          "views show too little bright sky above the horizon (sky-less, black or grey images?)")
-    d, a, w = d[used], a[used], w[used]
-    energy = float((w[:, None] * a * a).sum())
-    if energy <= 0:
-        raise SkyFitError(f"the {n} sky texels are all black; the sky model cannot be fitted")
+    if model not in SKY_MODELS:
+        raise ValueError(f"model must be one of {SKY_MODELS}, got {model!r}")
+    d, a, w, sun, up, energy = _check_fit_inputs(directions, radiance, sun_direction, up, weights, config)
+    n = len(d)
     lo, hi = config.turbidity_bounds
+    if model == "constant":
+        f = np.ones_like(a)
+        k = np.maximum(_best_scale(f, a, w), 0.0)
+        return SkyModel(turbidity=config.initial_turbidity, scale=k, residual=_model_residual(f, k, a, w),
+                        converged=True, n_iter=0, sun_direction=sun, up=up, n_texels=n, model="constant")
 
     def objective(x: np.ndarray) -> float:
         t = min(hi, max(lo, float(x[0])))
@@ -1156,17 +1280,78 @@ def fit_sky(
     t = min(hi, max(lo, float(result.x[0])))
     f = _preetham(d, sun, t, up)
     k = np.maximum(_best_scale(f, a, w), 0.0)
-    residual = math.sqrt(float((w[:, None] * (f * k - a) ** 2).sum()) / (3.0 * float(w.sum())))
-    return SkyModel(
+    preetham = SkyModel(
         turbidity=t,
         scale=k,
-        residual=residual,
+        residual=_model_residual(f, k, a, w),
         converged=bool(result.success),
         n_iter=int(result.nit),
         sun_direction=sun,
         up=up,
         n_texels=n,
     )
+    return preetham if model == "preetham" else _fit_perez(preetham, d, a, w, energy, config)
+
+
+def _azimuth_folds(directions: np.ndarray, sun: np.ndarray, up: np.ndarray, folds: int) -> np.ndarray:
+    """Fold of each direction: ``folds`` contiguous sectors of azimuth about ``up``, equal in count,
+    starting at the sun's azimuth (so each held-out sector is an extrapolation in azimuth)."""
+    frame = horizontal_frame(up, sun if abs(sun @ up) < 1 - 1e-9 else None)
+    azimuth = np.arctan2(directions @ frame[1], directions @ frame[0]) % (2 * math.pi)
+    ranks = np.argsort(np.argsort(azimuth, kind="stable"), kind="stable")
+    return (ranks * folds) // len(directions)
+
+
+def select_sky_model(
+    directions: object,
+    radiance: object,
+    *,
+    sun_direction: object,
+    up: object = _Z_UP,
+    config: SkyConfig | None = None,
+    weights: object | None = None,
+) -> SkyModel:
+    """The sky family the texels support, by their error held out from the fit (beyond the paper).
+
+    The texels are split into ``config.model_folds`` contiguous sectors of azimuth; each family of
+    :data:`SKY_MODELS` is fitted (:func:`fit_sky`) on all sectors but one and scored on the one
+    held out, ``Σ w |k f - A|²`` summed over the folds and divided by ``Σ w |A|²``. The family
+    with the lowest held-out error wins, except that a simpler family within
+    ``config.model_margin`` (relative) of it is preferred: the model is no bigger than the sky
+    needs. The winner is refitted on every texel; its ``evidence`` holds the held-out errors.
+    With fewer than ``config.min_texels`` texels in a training set the paper's Preetham sky is
+    fitted without a choice (``evidence["chosen_by"] = "too few texels"``).
+
+    Parameters
+    ----------
+    directions, radiance, sun_direction, up, config, weights
+        As :func:`fit_sky`.
+
+    Returns
+    -------
+    SkyModel
+    """
+    config = config_or_default(config, SkyConfig)
+    d, a, w, sun, up, energy = _check_fit_inputs(directions, radiance, sun_direction, up, weights, config)
+    folds = _azimuth_folds(d, sun, up, config.model_folds)
+    smallest_training = min(int((folds != k).sum()) for k in range(config.model_folds))
+    if smallest_training < config.min_texels:
+        model = fit_sky(d, a, sun_direction=sun, up=up, config=config, weights=w)
+        return replace(model, evidence={"chosen_by": "too few texels", "texels": len(d)})
+    errors = {}
+    for family in SKY_MODELS:
+        sse = 0.0
+        for k in range(config.model_folds):
+            train, test = folds != k, folds == k
+            fitted = fit_sky(d[train], a[train], sun_direction=sun, up=up, config=config, weights=w[train],
+                             model=family)
+            sse += float((w[test, None] * (fitted.radiance(d[test]) - a[test]) ** 2).sum())
+        errors[family] = sse / energy
+    best = min(errors.values())
+    chosen = next(f for f in SKY_MODELS if errors[f] <= best * (1.0 + config.model_margin))
+    model = fit_sky(d, a, sun_direction=sun, up=up, config=config, weights=w, model=chosen)
+    return replace(model, evidence={"chosen_by": "held-out error", "held_out_error": errors,
+                                    "folds": config.model_folds, "margin": config.model_margin, "texels": len(d)})
 
 
 def sky_fit_outliers(
@@ -1416,11 +1601,14 @@ def estimate_environment(
     1. :func:`partial_environment_map` of the uncovered valid pixels;
     2. :func:`detect_sky` above the horizon;
     3. :func:`fit_sky` on the detected sky texels (weights: texel solid angles when
-       ``config.weight_by_solid_angle``);
+       ``config.weight_by_solid_angle``), of the family ``config.model`` (Preetham's with
+       ``"auto"``);
     4. with ``config.outlier_ratio``, the sky texels the fit does not explain
        (:func:`sky_fit_outliers`) are re-labelled non-sky and the fit is repeated once (kept
        only if at least ``config.min_texels`` texels remain);
-    5. :func:`complete_environment_map`.
+    5. with ``config.model == "auto"``, the family chosen on the remaining texels by
+       :func:`select_sky_model`;
+    6. :func:`complete_environment_map`.
 
     Parameters
     ----------
@@ -1451,22 +1639,27 @@ def estimate_environment(
     directions = envmap_directions(partial.height, up=partial.up)
     weights_map = texel_solid_angles(partial.height) if config.weight_by_solid_angle else np.ones(sky.shape)
 
-    def fit(mask: np.ndarray) -> SkyModel:
-        return fit_sky(
+    family = "preetham" if config.model == "auto" else config.model
+
+    def fit(mask: np.ndarray, chooser=fit_sky, **kwargs) -> SkyModel:
+        return chooser(
             directions[mask],
             partial.radiance[mask],
             sun_direction=sun_direction,
             up=partial.up,
             config=config,
             weights=weights_map[mask],
+            **kwargs,
         )
 
-    model = fit(sky)
+    model = fit(sky, model=family)
     if config.outlier_ratio is not None:
         outliers = sky_fit_outliers(model, directions[sky], partial.radiance[sky], config=config)
         if outliers.any() and (~outliers).sum() >= config.min_texels:
             flat = sky.ravel().copy()
             flat[np.flatnonzero(flat)[outliers]] = False
             sky = flat.reshape(sky.shape)
-            model = fit(sky)
+            model = fit(sky, model=family)
+    if config.model == "auto":
+        model = fit(sky, chooser=select_sky_model)
     return complete_environment_map(partial, sky, model, horizon_normal=horizon_normal), model

@@ -12,6 +12,7 @@ from mvintrinsic.camera import Camera
 from mvintrinsic.results import SkyParameters
 from mvintrinsic.scene import View
 from mvintrinsic.skymodel import (
+    SKY_MODELS,
     EnvironmentMap,
     PartialEnvironmentMap,
     SkyConfig,
@@ -29,6 +30,7 @@ from mvintrinsic.skymodel import (
     preetham_perez_coefficients,
     preetham_relative_rgb,
     preetham_zenith_chromaticity,
+    select_sky_model,
     sky_fit_outliers,
     texel_solid_angles,
 )
@@ -775,3 +777,67 @@ def test_estimate_environment_end_to_end():
     upper = d[..., 2] > 0
     assert env.sky[upper].mean() > 0.95 and not env.sky[~upper].any()
     assert env.observed[upper].mean() > 0.2
+
+
+# -- the sky family chosen from the data (issue 17: a model no bigger than the scene needs) -----
+def test_constant_family_fits_a_uniform_sky_and_is_chosen_for_it():
+    rng = np.random.default_rng(11)
+    sun = sun_at(40.0)
+    d = partial_hemisphere(sun, rng)
+    a = np.array([0.5, 0.6, 0.7]) * (1.0 + 0.01 * rng.standard_normal((len(d), 3)))
+    constant = fit_sky(d, a, sun_direction=sun, model="constant")
+    assert constant.model == "constant" and constant.coefficients is None
+    np.testing.assert_allclose(constant.scale, [0.5, 0.6, 0.7], rtol=2e-3)
+    np.testing.assert_allclose(constant.radiance(d[:3]), np.tile(constant.scale, (3, 1)))
+    chosen = select_sky_model(d, a, sun_direction=sun)
+    assert chosen.model == "constant"  # Preetham and Perez fit no better out of sample
+    errors = chosen.evidence["held_out_error"]
+    assert set(errors) == set(SKY_MODELS) and chosen.evidence["folds"] == SkyConfig().model_folds
+    assert errors["constant"] < 1e-3
+
+
+def test_preetham_sky_chooses_preetham_over_a_constant_and_perez():
+    rng = np.random.default_rng(12)
+    sun = sun_at(35.0, azimuth_deg=120.0)
+    d = partial_hemisphere(sun, rng)
+    a = np.array([2.0, 3.0, 5.0]) * preetham_relative_rgb(d, sun_direction=sun, turbidity=3.0)
+    a *= 1.0 + 0.02 * rng.standard_normal(a.shape)
+    chosen = select_sky_model(d, a, sun_direction=sun)
+    errors = chosen.evidence["held_out_error"]
+    assert chosen.model == "preetham" and chosen.turbidity == pytest.approx(3.0, abs=TURBIDITY_TOL)
+    assert errors["constant"] > 10 * errors["preetham"]  # the gradient of a clear sky is real
+    assert errors["perez"] > (1 + SkyConfig().model_margin) ** -1 * errors["preetham"]  # no better enough
+
+
+def test_a_perez_sky_off_preetham_chooses_perez():
+    rng = np.random.default_rng(13)
+    sun = sun_at(35.0, azimuth_deg=120.0)
+    d = partial_hemisphere(sun, rng)
+    from mvintrinsic.skymodel import _preetham
+
+    coefficients = preetham_perez_coefficients(3.0)[0] + np.array([-0.3, -0.3, 0.0, 0.0, 0.15])  # another gradation
+    a = np.array([2.0, 3.0, 5.0]) * _preetham(d, sun, 3.0, np.array([0.0, 0.0, 1.0]), coefficients)
+    a *= 1.0 + 0.01 * rng.standard_normal(a.shape)
+    chosen = select_sky_model(d, a, sun_direction=sun)
+    errors = chosen.evidence["held_out_error"]
+    assert chosen.model == "perez" and errors["perez"] < 0.5 * errors["preetham"]
+    assert np.sqrt(np.mean((chosen.radiance(d) / a - 1) ** 2)) < 0.05
+    params = chosen.to_parameters()
+    assert params.model == "perez" and SkyParameters.from_dict(params.to_dict()) == params
+
+
+def test_fixed_family_and_too_few_texels_for_a_choice():
+    rng = np.random.default_rng(14)
+    sun = sun_at(40.0)
+    d = partial_hemisphere(sun, rng)
+    a = preetham_relative_rgb(d, sun_direction=sun, turbidity=4.0)
+    few = select_sky_model(d[:24], a[:24], sun_direction=sun)  # training sets of 19-20 texels, min_texels 20
+    assert few.model == "preetham" and few.evidence["chosen_by"] == "too few texels"
+    with pytest.raises(ValueError, match="model must be one of"):
+        fit_sky(d, a, sun_direction=sun, model="hosek")
+    with pytest.raises(ValueError, match="model must be 'auto' or one of"):
+        SkyConfig(model="hosek")
+    with pytest.raises(ValueError, match="model_folds"):
+        SkyConfig(model_folds=1)
+    with pytest.raises(ValueError, match="coefficients must be given"):
+        SkyModel(3.0, [1.0, 2.0, 3.0], 0.01, True, 12, sun_at(30.0), (0, 0, 1), 500, model="perez")

@@ -409,3 +409,34 @@ def test_subdivide_reaches_a_huge_triangle_whose_centroid_is_far():
     edges = np.max([np.linalg.norm(v[t[:, i]] - v[t[:, (i + 1) % 3]], axis=1) for i in range(3)], axis=0)
     assert near.sum() > 100 and edges[near].max() <= 0.5
     assert len(t) < 20000  # far parts stay coarse
+
+
+def test_convergence_test_spends_rays_only_where_the_shading_varies():
+    """Step1Config.ray_tolerance: a point that sees only a uniform sky converges in one round (every
+    ray brings the same radiance); a point at the foot of a wall gets more rounds, and is then closer
+    to the analytic S_sky = L / 2 than one round of the same first size."""
+    c, s = math.cos(0.5), math.sin(0.5)  # a wall turned off the sampler's strata boundaries
+    corners = np.array([[0.01, -500, -1], [0.01, 500, -1], [0.01, 500, 200], [0.01, -500, 200]])
+    wall = quad(corners @ np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]]))
+    tracer = Tracer(mesh_proxy(*merge(wall)))
+    L = np.array([0.2, 0.4, 0.8])
+    points = np.array([[0.0, 0.0, 0.0], [-c, -s, 0.0]])  # at the wall's foot; facing away from it
+    normals = np.array([[0.0, 0.0, 1.0], [-c, -s, 0.0]])
+    kwargs = dict(ray_offset=0.0, attenuation="none", n_rays=16)
+    one = [environment_shading(points, normals, tracer, uniform_sky(L), np.zeros((4, 3)), rng=seed, **kwargs)[0]
+           for seed in range(8)]
+    many = [environment_shading(points, normals, tracer, uniform_sky(L), np.zeros((4, 3)), rng=seed,
+                                tolerance=0.01, max_rays=336, return_counts=True, **kwargs) for seed in range(8)]
+    counts = np.array([m[2] for m in many])
+    assert (counts[:, 1] == 16).all() and (counts[:, 0] == 336).all()  # 16 + 64 + 256 at the wall
+    error_one = np.abs(np.array([s[0] for s in one]) / (L / 2) - 1).mean()
+    error_many = np.abs(np.array([m[0][0] for m in many]) / (L / 2) - 1).mean()
+    assert error_many < 0.5 * error_one
+    # Without a tolerance the count is fixed and the result is the one-round result.
+    fixed = environment_shading(points, normals, tracer, uniform_sky(L), np.zeros((4, 3)), rng=0,
+                                return_counts=True, **kwargs)
+    np.testing.assert_array_equal(fixed[0], one[0]) and np.testing.assert_array_equal(fixed[2], 16)
+    with pytest.raises(ValueError, match="tolerance"):
+        environment_shading(points, normals, tracer, uniform_sky(L), np.zeros((4, 3)), tolerance=0.0)
+    with pytest.raises(ValueError, match="max_rays"):
+        Step1Config(ray_tolerance=0.05, max_rays=8)

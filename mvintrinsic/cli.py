@@ -8,7 +8,8 @@ demo
     (estimate above, ground truth below), ground-truth previews, and the scores against gt/.
 decompose SCENE OUT
     Decompose a scene folder (Steps 1-4; ``--steps 3`` stops before Step 4) and write the result
-    folder of ``docs/formats.md``.
+    folder of ``docs/formats.md``. ``--scheduler ADDRESS`` runs the per-view work on a dask
+    cluster (``docs/distributed.md``).
 info SCENE
     Load a scene folder (``docs/formats.md``), validate it and print a summary: views, cameras,
     image statistics, proxy, sun, and which ground-truth layers are present. ``--json`` prints
@@ -22,6 +23,7 @@ Errors in the input are reported on one line naming the file or field, with exit
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from collections import Counter
@@ -246,6 +248,36 @@ def _read_config(path: Path | None, preset: str | None = None):
         raise ValueError(f"--config {path}: {exc}") from None
 
 
+#: Seconds ``--scheduler`` waits for the dask scheduler to answer by default.
+SCHEDULER_TIMEOUT = 10.0
+
+
+@contextlib.contextmanager
+def _scheduler(address: str | None, timeout: float):
+    """A ``distributed.Client`` connected to ``address`` for the duration (None without an address).
+
+    Errors are ``ValueError`` naming ``--scheduler`` (one line, exit status 2): dask.distributed
+    not installed, a malformed address, or no scheduler answering within ``timeout`` seconds.
+    """
+    if address is None:
+        yield None
+        return
+    if not timeout > 0:
+        raise ValueError(f"--scheduler-timeout must be a positive number of seconds, got {timeout!r}")
+    try:
+        from distributed import Client
+    except ImportError:
+        raise ValueError("--scheduler needs dask.distributed, which is not installed: "
+                         "pip install 'mvintrinsic[distributed]' (or pip install 'dask[distributed]')") from None
+    try:
+        client = Client(address, timeout=timeout, set_as_default=False)
+    except (OSError, ValueError, TypeError) as exc:  # TimeoutError is an OSError
+        reason = " ".join(str(exc).split()) or type(exc).__name__
+        raise ValueError(f"--scheduler {address}: cannot connect to a dask scheduler ({reason})") from None
+    with client:
+        yield client
+
+
 def _cmd_decompose(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
@@ -258,8 +290,9 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
         config = replace(config, allow_missing_sun=True)
     if args.steps is not None:
         config = replace(config, steps=args.steps)
-    scene = load_scene(args.scene, max_size=args.max_size, views=args.views or None, progress=not args.quiet)
-    result = decompose(scene, config=config, progress=not args.quiet)
+    with _scheduler(args.scheduler, args.scheduler_timeout) as client:  # before loading: a bad address fails fast
+        scene = load_scene(args.scene, max_size=args.max_size, views=args.views or None, progress=not args.quiet)
+        result = decompose(scene, config=config, progress=not args.quiet, client=client)
     folder = save_decomposition(result, args.out, scene=scene, overwrite=args.overwrite)
     if not args.quiet:
         _print_decomposition(result, scene)
@@ -296,18 +329,19 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     azimuths = [args.azimuth] if args.azimuth is not None else np.linspace(*args.sequence[:2], int(args.sequence[2]))
     for azimuth in (azimuths[0], azimuths[-1]):  # a bad sun is refused before anything is read or written
         as_sun_direction((float(azimuth), args.elevation), up=scene.up)
-    decomposition = load_decomposition(args.result)
-    out = _prepare_result_folder(args.out, overwrite=args.overwrite, scene=scene)
-    relighter = Relighter(decomposition, scene)
-    whites = {v.stem: float(np.percentile(v.image[np.isfinite(v.image)], 99)) for v in scene.views}
-    if args.azimuth is not None:
-        images = relighter.render((args.azimuth, args.elevation))
-        for stem, image in images.items():
-            write_image(out / f"{stem}.exr", image)
-            write_image(out / f"{stem}.png", tonemap(image, white=whites[stem]), dtype="uint8")
-        print(f"wrote {out}: {len(images)} views relit at azimuth {args.azimuth:g}, elevation {args.elevation:g}")
-        return 0
-    _write_relit_sequence(relighter, out, azimuths, args.elevation, whites, quiet=args.quiet)
+    with _scheduler(args.scheduler, args.scheduler_timeout) as client:
+        decomposition = load_decomposition(args.result)
+        out = _prepare_result_folder(args.out, overwrite=args.overwrite, scene=scene)
+        relighter = Relighter(decomposition, scene, client=client)
+        whites = {v.stem: float(np.percentile(v.image[np.isfinite(v.image)], 99)) for v in scene.views}
+        if args.azimuth is not None:
+            images = relighter.render((args.azimuth, args.elevation))
+            for stem, image in images.items():
+                write_image(out / f"{stem}.exr", image)
+                write_image(out / f"{stem}.png", tonemap(image, white=whites[stem]), dtype="uint8")
+            print(f"wrote {out}: {len(images)} views relit at azimuth {args.azimuth:g}, elevation {args.elevation:g}")
+            return 0
+        _write_relit_sequence(relighter, out, azimuths, args.elevation, whites, quiet=args.quiet)
     print(f"wrote {out}: {len(azimuths)} frames per view (azimuth {azimuths[0]:g} to {azimuths[-1]:g}, "
           f"elevation {args.elevation:g}), one animated GIF per view")
     return 0
@@ -465,6 +499,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="if no light/shadow pair is found, use L_sun = 0 instead of failing")
     dec.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT")
     dec.add_argument("--quiet", action="store_true", help="no progress bars or summary")
+    dec.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="run the per-view work (Steps 2-4) as one task per view on the dask cluster whose "
+                          "scheduler is at ADDRESS, e.g. tcp://10.0.0.5:8786 (needs dask.distributed; "
+                          "docs/distributed.md)")
+    dec.add_argument("--scheduler-timeout", type=float, default=SCHEDULER_TIMEOUT, metavar="SECONDS",
+                     help=f"seconds to wait for the scheduler to answer (default {SCHEDULER_TIMEOUT:g})")
     dec.set_defaults(run=_cmd_decompose)
 
     synth = commands.add_parser("synth", help="render a synthetic scene with ground truth (needs mitsuba)")
@@ -515,6 +555,12 @@ def build_parser() -> argparse.ArgumentParser:
                      help="world direction of geographic north (with --time; default: scene.json's sun_time.north)")
     rel.add_argument("--overwrite", action="store_true", help="write into an existing non-empty OUT")
     rel.add_argument("--quiet", action="store_true", help="no progress bars")
+    rel.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                     help="render each new sun as one task per view on the dask cluster whose "
+                          "scheduler is at ADDRESS, e.g. tcp://10.0.0.5:8786 (needs dask.distributed; "
+                          "docs/distributed.md)")
+    rel.add_argument("--scheduler-timeout", type=float, default=SCHEDULER_TIMEOUT, metavar="SECONDS",
+                     help=f"seconds to wait for the scheduler to answer (default {SCHEDULER_TIMEOUT:g})")
     rel.set_defaults(run=_cmd_relight)
     return parser
 

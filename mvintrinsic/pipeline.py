@@ -25,7 +25,10 @@ function, so a pipeline can be composed by hand::
 
 Per-view work (``pixel_quantities``, ``find_sun_pairs``, ``step2_layers``, ``step3_view``, the
 matting) depends only on the view and shared results (Step 1, ``L_sun``, the multi-view labels),
-so it can be fanned out over processes.
+so it can be fanned out over processes: ``decompose(scene, client=client)`` with a
+``dask.distributed.Client`` runs Step 2's pair search, Step 3's per-view segmentation, MRF and
+matting (:func:`step3_view`) and the paper's Step 4 offsets as one task per view on its cluster,
+with identical results (``docs/distributed.md``).
 """
 
 from __future__ import annotations
@@ -39,9 +42,10 @@ from typing import Any
 
 import numpy as np
 
+from ._cluster import _as_client, _ViewTasks
 from ._validation import config_or_default
 from .correspondence import Correspondences
-from .env_refine import EnvRefineConfig, Step4Result, refine
+from .env_refine import EnvRefineConfig, Step4Result, refine, refine_environment
 from .exposure import ExposureConfig, compensate, estimate_view_gains, restore_units
 from .matting import MattingConfig, intrinsic_layers
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
@@ -435,13 +439,7 @@ def _step3(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance
 
     config = config or Config()
     timings: dict[str, float] = {}
-    shared: MultiViewShadowLabels | None = None
-    if config.shadow.method == "multiview":
-        start = time.perf_counter()
-        shared = label_shadows_multiview(scene.views, quantities, sun_radiance, config=config.multiview,
-                                         up=scene.up, progress=progress)
-        timings["shadow_labels"] = time.perf_counter() - start
-        timings.update({f"shadow_labels.{k}": v for k, v in shared.timings.items()})
+    shared = _multiview_labels(scene, quantities, sun_radiance, config=config, timings=timings, progress=progress)
     views = {}
     for view in tqdm(scene.views, desc="step 3", unit="view", disable=not progress):
         result = step3_view(view, quantities[view.stem], sun_radiance, config=config,
@@ -450,6 +448,75 @@ def _step3(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance
         for name, seconds in result.timings.items():
             timings[name] = timings.get(name, 0.0) + seconds
     return views, timings, shared
+
+
+def _multiview_labels(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance: np.ndarray, *,
+                      config: Config, timings: dict[str, float], progress: bool) -> MultiViewShadowLabels | None:
+    """The labels of all views at once (``shadow.method == "multiview"``; None with ``"paper"``),
+    timed into ``timings``."""
+    if config.shadow.method != "multiview":
+        return None
+    start = time.perf_counter()
+    shared = label_shadows_multiview(scene.views, quantities, sun_radiance, config=config.multiview,
+                                     up=scene.up, progress=progress)
+    timings["shadow_labels"] = time.perf_counter() - start
+    timings.update({f"shadow_labels.{k}": v for k, v in shared.timings.items()})
+    return shared
+
+
+def _step3_task(inputs: tuple[View, PixelQuantities], labels: PixelShadowLabels | None, *, sun_radiance: np.ndarray,
+                config: Config) -> tuple[IntrinsicLayers, dict[str, float]]:
+    """A task: :func:`step3_view` of one view, its layers and timings only (the rest stays on the worker)."""
+    view, quantities = inputs
+    result = step3_view(view, quantities, sun_radiance, config=config, labels=labels)
+    return result.layers, dict(result.timings)
+
+
+def _sun_pairs_task(inputs: tuple[View, PixelQuantities], *, config: SunConfig) -> SunPairs:
+    """A task: :func:`~mvintrinsic.sun_calibration.find_sun_pairs` of one view."""
+    view, quantities = inputs
+    return find_sun_pairs(view, quantities, config=config)
+
+
+def _offsets_task(inputs: tuple[View, PixelQuantities], step3_result: tuple[IntrinsicLayers, dict[str, float]], *,
+                  config: EnvRefineConfig) -> IntrinsicLayers:
+    """A task: the paper's Step 4 on one view (:func:`~mvintrinsic.env_refine.refine_environment`), its layers."""
+    return refine_environment(inputs[0].image, step3_result[0], config=config).layers
+
+
+def _step3_layers(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance: np.ndarray, *,
+                  config: Config, progress: bool, tasks: _ViewTasks | None, inputs: Mapping[str, Any] | None
+                  ) -> tuple[dict[str, IntrinsicLayers], dict[str, float], MultiViewShadowLabels | None,
+                             dict[str, Any]]:
+    """Step 3 for :func:`decompose`: the layers, timings (as :func:`step3`'s), the multi-view labelling
+    and, on a cluster (``tasks``), the per-view task futures (for Step 4 to start from in place)."""
+    from tqdm.auto import tqdm
+
+    timings: dict[str, float] = {}
+    shared = _multiview_labels(scene, quantities, sun_radiance, config=config, timings=timings, progress=progress)
+    if tasks is None:
+        results = {}
+        for view in tqdm(scene.views, desc="step 3", unit="view", disable=not progress):
+            result = step3_view(view, quantities[view.stem], sun_radiance, config=config,
+                                labels=None if shared is None else shared[view.stem])
+            results[view.stem] = (result.layers, result.timings)
+        futures: dict[str, Any] = {}
+    else:
+        start = time.perf_counter()
+        labels = ({s: None for s in scene.stems} if shared is None
+                  else tasks.scatter({s: shared[s] for s in scene.stems}))  # each to its view's worker
+        timings["scatter"] = time.perf_counter() - start
+        start = time.perf_counter()
+        futures = tasks.submit("step3", _step3_task, {s: (inputs[s], labels[s]) for s in scene.stems},
+                               sun_radiance=np.asarray(sun_radiance), config=config)
+        results = tasks.gather(futures, desc="step 3", progress=progress)
+        timings["cluster.step3"] = time.perf_counter() - start
+    layers = {}
+    for stem in scene.stems:
+        layers[stem], view_timings = results[stem]
+        for name, seconds in view_timings.items():
+            timings[name] = timings.get(name, 0.0) + seconds
+    return layers, timings, shared, futures
 
 
 def step4(scene: Scene, quantities: Mapping[str, PixelQuantities], layers: Mapping[str, IntrinsicLayers], *,
@@ -488,12 +555,17 @@ def working_scale(scene: Scene, scale: float) -> float:
     return max(float(scale), min(1.0, MIN_WORKING_SIDE / longest))
 
 
-def _sun_pairs(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config, progress: bool
-               ) -> list[SunPairs]:
+def _sun_pairs(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config, progress: bool,
+               tasks: _ViewTasks | None = None, inputs: Mapping[str, Any] | None = None) -> list[SunPairs]:
+    """Every view's light/shadow pairs, in scene order: here, or one task per view on a cluster (``tasks``)."""
     from tqdm.auto import tqdm
 
-    return [find_sun_pairs(view, quantities[view.stem], config=config.sun)
-            for view in tqdm(scene.views, desc="sun pairs", unit="view", disable=not progress)]
+    if tasks is None:
+        return [find_sun_pairs(view, quantities[view.stem], config=config.sun)
+                for view in tqdm(scene.views, desc="sun pairs", unit="view", disable=not progress)]
+    futures = tasks.submit("sun-pairs", _sun_pairs_task, {s: (inputs[s],) for s in scene.stems}, config=config.sun)
+    pairs = tasks.gather(futures, desc="sun pairs", progress=progress)
+    return [pairs[s] for s in scene.stems]
 
 
 #: Fewest shadow-edge samples whose contrast can overrule "no pair means no direct sun"
@@ -588,7 +660,7 @@ def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig
 
 
 def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
-              progress: bool = False) -> Decomposition:
+              progress: bool = False, client: Any = None) -> Decomposition:
     """Decompose every view of a scene into reflectance and shading layers (Steps 1-4).
 
     Parameters
@@ -601,6 +673,19 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         A tracer already built over ``scene.proxy``.
     progress : bool, optional
         tqdm progress bars over the long stages and the views.
+    client : distributed.Client, optional
+        A dask.distributed client (``docs/distributed.md``): the per-view work runs as one task
+        per view on its cluster: Step 2's light/shadow pair search
+        (:func:`~mvintrinsic.sun_calibration.find_sun_pairs`), Step 3's segmentation, shadow MRF
+        and matting (:func:`step3_view`) and, with ``env_refine.method="paper"``, Step 4's
+        offsets. Each view (its image and Step-1 pixel quantities, and later its labels) is
+        shipped once to one worker, where its tasks run. Everything that needs all views at once
+        stays here: Step 1 and the pixel quantities (ray casting over the proxy's Embree
+        structure, which cannot be pickled), the choice of a direct sun and ``L_sun``, the
+        multi-view shadow labelling, Step 4's multi-view fusion, and the upsampling of
+        ``config.scale``. The layers and lighting are identical to those without a client (no
+        per-view step draws random numbers). None (default): everything runs in this process
+        and dask is not imported.
 
     Returns
     -------
@@ -610,11 +695,17 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         views (``downscale`` and ``upsample`` with ``config.scale < 1``, ``depth_maps`` (cast once
         for the gains and Step 1), ``exposure``,
         ``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
-        :func:`step3`, or ``layers`` with ``steps=2``; ``step4`` and its parts ``step4.<part>``)
-        and ``config.to_dict()``.
+        :func:`step3`, or ``layers`` with ``steps=2``; ``step4`` and its parts ``step4.<part>``;
+        with a ``client``, ``scatter``: shipping the views' inputs to the workers, and
+        ``cluster.step3``: the wall seconds of Step 3's tasks, whose stages (``segmentation``,
+        ``matting``, ...) are the workers' seconds summed over the views) and ``config.to_dict()``.
 
     Raises
     ------
+    TypeError
+        If ``scene``, ``config`` or ``client`` has the wrong type.
+    ValueError
+        If the ``client``'s cluster has no worker.
     SunCalibrationError
         With ``config.sun.direct_sun == "always"``: no light/shadow pair survived and
         ``config.allow_missing_sun`` is False.
@@ -622,6 +713,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     if not isinstance(scene, Scene):
         raise TypeError(f"scene must be a Scene, got {type(scene).__name__}")
     config = config_or_default(config, Config)
+    client = _as_client(client)
+    tasks = None if client is None else _ViewTasks(client, scene.stems)  # fails now on a cluster without workers
     timings: dict[str, float] = {}
 
     tracer = tracer if tracer is not None else Tracer(scene.proxy)
@@ -650,15 +743,20 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     start = time.perf_counter()
     quantities = carry_to_pixels(scene, s1, tracer, progress=progress)
     timings["pixels"] = time.perf_counter() - start
+    inputs = None
+    if tasks is not None:  # each view's image and quantities to its worker, once
+        start = time.perf_counter()
+        inputs = tasks.scatter({v.stem: (v, quantities[v.stem]) for v in scene.views})
+        timings["scatter"] = time.perf_counter() - start
 
     logger.info("step 2: sun calibration over %d views", len(scene.views))
     start = time.perf_counter()
     model: dict[str, ModelChoice] = {}
-    if config.sun.direct_sun == "always":
-        calibration = calibrate(scene, quantities, config=config, progress=progress)
-        sun_radiance = calibration.sun_radiance
+    if config.sun.direct_sun == "always":  # calibrate(), its pairs found on the cluster
+        pairs = _sun_pairs(scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs)
+        sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
     else:
-        pairs = _sun_pairs(scene, quantities, config=config, progress=progress)
+        pairs = _sun_pairs(scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs)
         model["sun"] = choose_direct_sun(scene, quantities, pairs, config=config.sun)
         sun_radiance = np.zeros(3)
         if model["sun"].choice == "direct sun":
@@ -680,19 +778,27 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         timings["layers"] = time.perf_counter() - start
     else:
         logger.info("step 3 (%s labelling) over %d views", config.shadow.method, len(scene.views))
-        views, step3_timings, shared = _step3(scene, quantities, sun_radiance, config=config, progress=progress)
-        layers = {stem: result.layers for stem, result in views.items()}
+        layers, step3_timings, shared, step3_futures = _step3_layers(
+            scene, quantities, sun_radiance, config=config, progress=progress, tasks=tasks, inputs=inputs)
+        if "scatter" in step3_timings:  # the labels' shipping adds to the inputs'
+            timings["scatter"] += step3_timings.pop("scatter")
         timings.update(step3_timings)
         if config.steps == 4:
             model["step4"] = _choose_step4(layers, config.env_refine)
         if config.steps == 4 and model["step4"].choice == "run":
             logger.info("step 4 (%s) over %d views", config.env_refine.method, len(scene.views))
             start = time.perf_counter()
-            refined = step4(scene, quantities, layers, config=config,
-                            correspondences=None if shared is None else shared.correspondences)
-            layers = dict(refined.layers)
+            if tasks is not None and config.env_refine.method == "paper":  # per view, from Step 3 in place
+                futures = tasks.submit("step4", _offsets_task, {s: (inputs[s], step3_futures[s]) for s in scene.stems},
+                                       config=config.env_refine)
+                layers = tasks.gather(futures, desc="step 4", progress=progress)
+                step4_timings = {"offsets": time.perf_counter() - start}
+            else:
+                refined = step4(scene, quantities, layers, config=config,
+                                correspondences=None if shared is None else shared.correspondences)
+                layers, step4_timings = dict(refined.layers), refined.timings
             timings["step4"] = time.perf_counter() - start
-            timings.update({f"step4.{k}": v for k, v in refined.timings.items()})
+            timings.update({f"step4.{k}": v for k, v in step4_timings.items()})
 
     if scale < 1.0:  # the layers at the photos' size
         start = time.perf_counter()

@@ -253,10 +253,12 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from types import MappingProxyType
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
 
+from ._cluster import _as_client, _Rebuilt, _ViewTasks
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
 from .image_model import LUMINANCE_WEIGHTS
@@ -1566,6 +1568,134 @@ def _read_only(array: np.ndarray) -> np.ndarray:
     return array
 
 
+class _NewSun:
+    """One view's sun-independent inputs of a new sun, and the per-view steps of one (:class:`Relighter`).
+
+    Built once per view; :meth:`Relighter.render` runs these steps here, or ships this object once
+    to a dask worker and runs them there (:func:`_render_view`): the same code either way, so the
+    images are identical. It holds no Embree structure (those cannot be pickled): the caster's and
+    the proxy's are passed in.
+
+    Parameters
+    ----------
+    receivers : (H*W, 3) float64
+        Receiver points, world frame, metres (:func:`receiver_points`).
+    shape : (int, int)
+        ``(H, W)``.
+    blocked : (P + 1,) bool
+        :meth:`ShadowCaster.completion_blocked` of the view's caster.
+    min_distance : float
+        Proxy hits nearer than this (metres) complete no shadow.
+    config : RelightConfig
+    batch : int
+        Rays per Embree call.
+    normals : (H, W, 3) float32
+        Unit receiver normals, world frame.
+    base, floor : (H, W, 3) float32
+        ``S_sun' = max(base + L_sun max(0, n.d'), floor)`` (:meth:`Relighter._prepare_new_sun`).
+    fill : (H, W, 3) float32
+        The input image where the layers hold no estimate, 0 elsewhere.
+    reflectance, fill_reflectance : (H, W, 3) float32
+        ``R`` after the in-shadow fix; the same with 0 where the layers hold no estimate.
+    sky_shading, indirect_shading : (H, W, 3) float32
+        The layers' ``S_sky`` and ``S_ind``.
+    radiance : (3,) float32
+        ``L_sun`` in the view's units.
+    known : (H, W) bool
+        Pixels where the layers hold an estimate.
+    sky_lookup : _SphereLookup or None
+        ``sky="model"``: the sky irradiance table at each pixel's normal.
+    """
+
+    def __init__(self, *, receivers: np.ndarray, shape: tuple[int, int], blocked: np.ndarray, min_distance: float,
+                 config: RelightConfig, batch: int, normals: np.ndarray, base: np.ndarray, floor: np.ndarray,
+                 fill: np.ndarray, reflectance: np.ndarray, fill_reflectance: np.ndarray, sky_shading: np.ndarray,
+                 indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
+                 sky_lookup: _SphereLookup | None) -> None:
+        self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
+        self.config, self.batch = config, batch
+        self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
+        self.reflectance, self.fill_reflectance = reflectance, fill_reflectance
+        self.sky_shading, self.indirect_shading = sky_shading, indirect_shading
+        self.radiance, self.known, self.sky_lookup = radiance, known, sky_lookup
+
+    def visibility(self, direction: np.ndarray, shadow_caster: ShadowCaster, tracer: Tracer) -> np.ndarray:
+        """``v'`` (H, W) float32 at the unit sun ``direction`` (:meth:`Relighter.visibility_at`)."""
+        return shadow_caster._visibility(self.receivers, self.shape, direction, proxy_tracer=tracer,
+                                         blocked=self.blocked, min_distance=self.min_distance, facing=None,
+                                         config=self.config, batch=self.batch)
+
+    def cosine(self, direction: np.ndarray) -> np.ndarray:
+        """``max(0, n . d')`` (H, W) float32 for the float32 unit sun ``direction``."""
+        cosine = self.normals @ direction
+        return np.maximum(cosine, np.float32(0.0), out=cosine)
+
+    def irradiance(self, cosine: np.ndarray, visibility: np.ndarray) -> float:
+        """``sum max(0, n . d') v'`` over the pixels with an estimate (``sky="model"``'s ``S_ind``)."""
+        return float((cosine.astype(np.float64) * visibility)[self.known].sum())
+
+    def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
+        """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
+        how, table = environment
+        return table.astype(np.float32) if how == "paper" else self.sky_lookup(table)
+
+    def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
+        """``S_sun'`` (H, W, 3) float32 from ``max(0, n . d')``."""
+        s_sun = cosine[..., None] * self.radiance
+        s_sun += self.base
+        return np.maximum(s_sun, self.floor, out=s_sun)
+
+    def image(self, visibility: np.ndarray, sun_shading: np.ndarray, sky: np.ndarray, indirect: float,
+              fill: str) -> np.ndarray:
+        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32; ``sun_shading`` is overwritten."""
+        image = sun_shading
+        image *= visibility[..., None]
+        image += self.sky_shading * sky
+        image += self.indirect_shading * np.float32(indirect)
+        if fill == "input":  # the reflectance of the pixels without an estimate is 0 there
+            image *= self.fill_reflectance
+            image += self.fill
+        else:
+            image *= self.reflectance
+        return image
+
+
+def _build_task(caster: _Rebuilt, tracer: _Rebuilt) -> None:
+    """A task: build the caster's and the proxy's Embree structures on this worker (once each)."""
+    caster.get()
+    tracer.get()
+
+
+def _new_sun_terms(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
+                   shadow_sun: np.ndarray, visibility: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A task: one view's ``(v', max(0, n . d'))`` at a new sun (``visibility`` given: that ``v'``)."""
+    if visibility is None:
+        visibility = new_sun.visibility(shadow_sun, caster.get(), tracer.get())
+    return visibility, new_sun.cosine(direction.astype(np.float32))
+
+
+def _irradiance_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray]) -> float:
+    """A task: :meth:`_NewSun.irradiance` of one view's :func:`_new_sun_terms`."""
+    visibility, cosine = terms
+    return new_sun.irradiance(cosine, visibility)
+
+
+def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple[str, np.ndarray],
+                indirect_factor: float, fill: str) -> np.ndarray:
+    """A task: one view's relit image from its :func:`_new_sun_terms`."""
+    visibility, cosine = terms
+    return new_sun.image(visibility, new_sun.sun_shading(cosine), new_sun.sky_factor(environment),
+                         indirect_factor, fill)
+
+
+def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
+                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple[str, np.ndarray],
+                 indirect_factor: float, fill: str) -> np.ndarray:
+    """A task: one view's relit image at a new sun (``sky="paper"``: no cross-view term)."""
+    terms = _new_sun_terms(new_sun, caster, tracer, direction, shadow_sun, visibility)
+    return _image_task(new_sun, terms, environment=environment, indirect_factor=indirect_factor, fill=fill)
+
+
 class Relighter:
     """Relight every view of a decomposition under new suns (paper Sec. 8).
 
@@ -1593,6 +1723,17 @@ class Relighter:
         A tracer already built over ``scene.proxy``.
     batch : int, optional
         Rays per Embree call.
+    client : distributed.Client, optional
+        A dask.distributed client: :meth:`render` then runs one task per view on its cluster
+        (``docs/distributed.md``). Building stays here (the casters need every view's votes); at
+        the end each view's inputs of a new sun (receivers, completion lookup, shading terms and
+        caster, about 120 bytes per pixel, 180 with ``sky="model"``) are shipped once to one
+        worker, the proxy once to every worker, and each worker builds its own Embree structures
+        over them (they cannot be pickled):
+        the proxy's tracer is ``Tracer(scene.proxy)`` there, so a ``tracer`` built with other
+        surfel parameters (point clouds) would not be matched. The images are identical to
+        those rendered here. None (default): everything runs in this process; dask is not
+        imported.
 
     Attributes
     ----------
@@ -1624,12 +1765,13 @@ class Relighter:
         Seconds spent building: ``receivers`` (camera rays, depths, normals), ``casters`` (all
         views' :func:`build_caster`), ``votes`` (every view's lit pixels against every caster and
         the proxy), ``shadow_caster`` (merging and the BVHs), ``new_sun_setup`` (what every new
-        sun reuses: the completion lookups and the shading terms).
+        sun reuses: the completion lookups and the shading terms) and, with a ``client``,
+        ``scatter`` (shipping those to the workers, which build their Embree structures).
 
     Raises
     ------
     TypeError
-        If ``decomposition``, ``scene``, ``config`` or ``tracer`` has the wrong type.
+        If ``decomposition``, ``scene``, ``config``, ``tracer`` or ``client`` has the wrong type.
     ValueError
         If the decomposition's views are not the scene's (the message names ``decomposition``),
         ``tracer`` is not built over ``scene.proxy``, a view's camera sees no proxy, or the
@@ -1637,9 +1779,10 @@ class Relighter:
     """
 
     def __init__(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None = None,
-                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH) -> None:
+                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
         config = config_or_default(config, RelightConfig)
+        client = _as_client(client)
         if tracer is None:
             tracer = Tracer(scene.proxy)
         tracer = _check_tracer(tracer)
@@ -1721,23 +1864,36 @@ class Relighter:
         self.reflectance = MappingProxyType(reflectance)
         self.visibility = MappingProxyType(visibility)
         self.casters = MappingProxyType(casters)
-        self._hits, self._known, self._cosine = hits, known, cosine
+        self._hits, self._known = hits, known
         # The sun-independent inputs of every new sun, once (module docstring, "Speed").
         start = time.perf_counter()
-        self._origins = {s: receivers[s].reshape(-1, 3) for s in self.stems}  # a view, no copy
-        self._blocked = {s: self.shadow_casters[s].completion_blocked(
-            tracer, excluded if config.method == "multiview" else None) for s in self.stems}
-        self._prepare_shading()
+        self._new_sun = {s: self._prepare_new_sun(s, cosine[s], excluded) for s in self.stems}
         timings["new_sun_setup"] = time.perf_counter() - start
-        self.timings = MappingProxyType(timings)
         # The sun irradiance of the receivers at capture, the denominator of S_ind's scale.
         self._sun_irradiance = sum(float((cosine[s] * visibility[s])[known[s]].sum()) for s in self.stems)
         self._turbidity = lighting.sky.turbidity if lighting.sky is not None else config.turbidity
-        self._sky_lookup: dict[str, _SphereLookup] = {}
         self._sky_grid: np.ndarray | None = None
         if config.sky == "model":
-            self._sky_lookup = {s: _SphereLookup(normals[s], NORMAL_GRID_HEIGHT, up) for s in self.stems}
             self._sky_grid = _sky_irradiance_grid(capture, self._turbidity, up)
+        self._tasks: _ViewTasks | None = None
+        self._remote: dict[str, Any] = {}
+        if client is not None:  # each view's inputs of a new sun on its worker, once
+            start = time.perf_counter()
+            self._tasks = _ViewTasks(client, self.stems)
+            self._remote = {"tracer": self._tasks.broadcast(_Rebuilt(Tracer, scene.proxy, value=tracer)),
+                            "new_sun": self._tasks.scatter(self._new_sun)}
+            if config.casters == "merged":
+                merged = _Rebuilt(ShadowCaster, self.caster, value=self.shadow_casters[self.stems[0]])
+                shared = self._tasks.broadcast(merged)
+                self._remote["casters"] = {s: shared for s in self.stems}
+            else:
+                self._remote["casters"] = self._tasks.scatter(
+                    {s: _Rebuilt(ShadowCaster, casters[s], value=self.shadow_casters[s]) for s in self.stems})
+            # the workers build their Embree structures now, not at the first sun
+            builds = {s: (self._remote["casters"][s], self._remote["tracer"]) for s in self.stems}
+            self._tasks.gather(self._tasks.submit("relight-build", _build_task, builds))
+            timings["scatter"] = time.perf_counter() - start
+        self.timings = MappingProxyType(timings)
 
     # -- shadows -------------------------------------------------------------------------------
     def visibility_at(self, sun: object) -> dict[str, np.ndarray]:
@@ -1759,12 +1915,7 @@ class Relighter:
             ``v'`` in [0, 1] per view, in scene order.
         """
         direction = as_sun_direction(sun, up=self.up)
-        min_distance = self.config.completion_distance if self.config.method == "multiview" else 0.0
-        return {s: self.shadow_casters[s]._visibility(
-                    self._origins[s], self.receivers[s].shape[:2], direction, proxy_tracer=self.tracer,
-                    blocked=self._blocked[s], min_distance=min_distance, facing=None, config=self.config,
-                    batch=self._batch)
-                for s in self.stems}
+        return {s: self._new_sun[s].visibility(direction, self.shadow_casters[s], self.tracer) for s in self.stems}
 
     def proxy_visibility(self, sun: object) -> dict[str, np.ndarray]:
         """The proxy's own shadow at a new sun, as Step 1 computes it (paper Sec. 4; Fig. 11, right).
@@ -1851,64 +2002,77 @@ class Relighter:
             )
         return out
 
-    def _prepare_shading(self) -> None:
-        """The sun-independent terms of ``S_sun'`` per view, float32, once (module docstring).
+    def _prepare_new_sun(self, stem: str, cosine: np.ndarray, excluded: np.ndarray) -> _NewSun:
+        """The sun-independent inputs of a new sun of one view, float32, once (module docstring).
 
         ``S_sun' = max(S_sun - L_sun max(0, n.d) + L_sun max(0, n.d'), min(S_sun, 0))`` where the
         pixel saw the sun (``v_sun > 0``), else ``L_sun max(0, n.d')``: the first two terms and
         the floor do not depend on the new sun ``d'``.
         """
-        self._shading_terms = {}
-        for stem in self.stems:
-            radiance = self._radiance[stem].astype(np.float64)
-            s_sun = self.decomposition.layers[stem].sun_shading.astype(np.float64)
-            saw_sun = (self.visibility[stem] > 0)[..., None]
-            # In full shadow base 0 and floor -inf leave L_sun max(0, n.d') alone.
-            base = np.where(saw_sun, s_sun - radiance * self._cosine[stem][..., None], 0.0).astype(np.float32)
-            floor = np.where(saw_sun, np.minimum(s_sun, 0.0), -np.inf).astype(np.float32)
-            unknown = ~self._known[stem][..., None]
-            image = self.scene.view(stem).image
-            fill = np.where(unknown, np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0).astype(np.float32)
-            reflectance = np.where(unknown, np.float32(0.0), self.reflectance[stem])  # so the fill adds to 0
-            self._shading_terms[stem] = (self.normals[stem].astype(np.float32), base, floor, fill, reflectance)
+        config = self.config
+        radiance = self._radiance[stem].astype(np.float64)
+        layers = self.decomposition.layers[stem]
+        s_sun = layers.sun_shading.astype(np.float64)
+        saw_sun = (self.visibility[stem] > 0)[..., None]
+        # In full shadow base 0 and floor -inf leave L_sun max(0, n.d') alone.
+        base = np.where(saw_sun, s_sun - radiance * cosine[..., None], 0.0).astype(np.float32)
+        floor = np.where(saw_sun, np.minimum(s_sun, 0.0), -np.inf).astype(np.float32)
+        unknown = ~self._known[stem][..., None]
+        image = self.scene.view(stem).image
+        fill = np.where(unknown, np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0).astype(np.float32)
+        blocked = self.shadow_casters[stem].completion_blocked(
+            self.tracer, excluded if config.method == "multiview" else None)
+        return _NewSun(
+            receivers=self.receivers[stem].reshape(-1, 3),  # a view, no copy
+            shape=layers.shape, blocked=blocked,
+            min_distance=config.completion_distance if config.method == "multiview" else 0.0,
+            config=config, batch=self._batch, normals=self.normals[stem].astype(np.float32), base=base,
+            floor=floor, fill=fill, reflectance=self.reflectance[stem],
+            fill_reflectance=np.where(unknown, np.float32(0.0), self.reflectance[stem]),  # so the fill adds to 0
+            sky_shading=layers.sky_shading, indirect_shading=layers.indirect_shading,
+            radiance=self._radiance[stem], known=self._known[stem],
+            sky_lookup=(_SphereLookup(self.normals[stem], NORMAL_GRID_HEIGHT, self.up)
+                        if config.sky == "model" else None))
+
+    def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray], float | None]:
+        """The environment's change at a new sun: ``(how, table)`` for :meth:`_NewSun.sky_factor`,
+        and the factor of ``S_ind`` (None with ``sky="model"``: it needs every view's ``v'``,
+        :meth:`_indirect_factor`)."""
+        if self.config.sky == "paper":
+            gain, indirect_factor = paper_environment_factors(self.sun, direction, up=self.up)
+            return ("paper", gain), float(indirect_factor)
+        return ("model", _grid_ratio(_sky_irradiance_grid(direction, self._turbidity, self.up), self._sky_grid)), None
+
+    def _indirect_factor(self, irradiance: float) -> float:
+        """``sky="model"``: S_ind follows the sun irradiance of the receivers, the mean of
+        ``max(0, n.d') v'`` over that of ``max(0, n.d) v`` (over every view's pixels with an estimate)."""
+        return float(irradiance / self._sun_irradiance if self._sun_irradiance > 0 else 1.0)
 
     def _relit(self, sun: object, visibility: Mapping[str, np.ndarray] | None
-               ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | float, float]]:
+               ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
         """Per view ``(v', S_sun', S_sky' / S_sky, S_ind' / S_ind)``: the core of :meth:`layers`.
 
-        ``S_sun'`` (H, W, 3) float32; the sky factor a scalar (``sky="paper"``) or (H, W, 3)
-        (``"model"``); the indirect factor a scalar.
+        ``S_sun'`` (H, W, 3) float32; the sky factor (3,) float32 (``sky="paper"``) or (H, W, 3)
+        float64 (``"model"``); the indirect factor a scalar.
         """
         direction = as_sun_direction(sun, up=self.up)
         new_vis = self.visibility_at(direction) if visibility is None else self._check_visibility(visibility)
         d32 = direction.astype(np.float32)
-        new_cosine = {}
-        for stem in self.stems:
-            cosine = self._shading_terms[stem][0] @ d32
-            new_cosine[stem] = np.maximum(cosine, np.float32(0.0), out=cosine)
-        if self.config.sky == "paper":
-            gain, indirect_factor = paper_environment_factors(self.sun, direction, up=self.up)
-            sky_factor = {s: gain.astype(np.float32) for s in self.stems}
-        else:
-            ratio = _grid_ratio(_sky_irradiance_grid(direction, self._turbidity, self.up), self._sky_grid)
-            sky_factor = {s: self._sky_lookup[s](ratio) for s in self.stems}
-            # S_ind follows the sun irradiance of the receivers: mean of max(0, n.d') v' over
-            # the mean of max(0, n.d) v (both over every view's pixels with an estimate).
-            new = sum(float((new_cosine[s].astype(np.float64) * new_vis[s])[self._known[s]].sum())
-                      for s in self.stems)
-            indirect_factor = new / self._sun_irradiance if self._sun_irradiance > 0 else 1.0
-        out = {}
-        for stem in self.stems:
-            _, base, floor, _, _ = self._shading_terms[stem]
-            s_sun = new_cosine[stem][..., None] * self._radiance[stem]
-            s_sun += base
-            np.maximum(s_sun, floor, out=s_sun)
-            out[stem] = (new_vis[stem], s_sun, sky_factor[stem], float(indirect_factor))
-        return out
+        new_cosine = {s: self._new_sun[s].cosine(d32) for s in self.stems}
+        environment, indirect_factor = self._environment(direction)
+        if indirect_factor is None:
+            indirect_factor = self._indirect_factor(
+                sum(self._new_sun[s].irradiance(new_cosine[s], new_vis[s]) for s in self.stems))
+        return {s: (new_vis[s], self._new_sun[s].sun_shading(new_cosine[s]), self._new_sun[s].sky_factor(environment),
+                    indirect_factor)
+                for s in self.stems}
 
     def render(self, sun: object, *, visibility: Mapping[str, np.ndarray] | None = None,
                fill: str = "input") -> dict[str, np.ndarray]:
         """Relit images of every view: ``R (v' S_sun' + S_sky' + S_ind')`` (Eq. 1 at the new sun).
+
+        With a ``client`` (:class:`Relighter`), one task per view on the cluster (two with
+        ``sky="model"``, whose ``S_ind'`` needs every view's ``v'``); the images are identical.
 
         Parameters
         ----------
@@ -1931,28 +2095,39 @@ class Relighter:
         """
         if fill not in ("input", "zero"):
             raise ValueError(f"fill must be 'input' or 'zero', got {fill!r}")
-        out = {}
-        for stem, (v_new, s_sun, sky, indirect) in self._relit(sun, visibility).items():
-            layers = self.decomposition.layers[stem]
-            image = s_sun
-            image *= v_new[..., None]
-            image += layers.sky_shading * sky
-            image += layers.indirect_shading * np.float32(indirect)
-            terms = self._shading_terms[stem]
-            if fill == "input":  # the reflectance of the pixels without an estimate is 0 there
-                image *= terms[4]
-                image += terms[3]
-            else:
-                image *= self.reflectance[stem]
-            out[stem] = image
-        return out
+        if self._tasks is not None:
+            return self._render_on_cluster(sun, visibility, fill)
+        return {s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill)
+                for s, (v_new, s_sun, sky, indirect) in self._relit(sun, visibility).items()}
+
+    def _render_on_cluster(self, sun: object, visibility: Mapping[str, np.ndarray] | None, fill: str
+                           ) -> dict[str, np.ndarray]:
+        """:meth:`render` as one task per view on the client's cluster (the same per-view steps as :meth:`_relit`)."""
+        tasks, remote = self._tasks, self._remote
+        direction = as_sun_direction(sun, up=self.up)
+        shadow_sun = as_sun_direction(direction, up=self.up)  # as visibility_at receives it in _relit
+        given = None if visibility is None else tasks.scatter(self._check_visibility(visibility))
+        args = {s: (remote["new_sun"][s], remote["casters"][s], remote["tracer"], direction, shadow_sun,
+                    None if given is None else given[s]) for s in self.stems}
+        environment, indirect_factor = self._environment(direction)
+        if indirect_factor is not None:
+            futures = tasks.submit("relight", _render_view, args, environment=environment,
+                                   indirect_factor=indirect_factor, fill=fill)
+        else:  # S_ind' needs the irradiance of every view at the new sun first
+            terms = tasks.submit("relight-shadows", _new_sun_terms, args)
+            irradiance = tasks.gather(tasks.submit("relight-irradiance", _irradiance_task,
+                                                   {s: (remote["new_sun"][s], terms[s]) for s in self.stems}))
+            indirect_factor = self._indirect_factor(sum(irradiance[s] for s in self.stems))
+            futures = tasks.submit("relight", _image_task, {s: (remote["new_sun"][s], terms[s]) for s in self.stems},
+                                   environment=environment, indirect_factor=indirect_factor, fill=fill)
+        return tasks.gather(futures)
 
     def __repr__(self) -> str:
         return f"Relighter({len(self.stems)} views, sky={self.config.sky!r}, {self.caster!r})"
 
 
 def relight(decomposition: Decomposition, scene: Scene, *, sun: object,
-            config: RelightConfig | None = None) -> dict[str, np.ndarray]:
+            config: RelightConfig | None = None, client: Any = None) -> dict[str, np.ndarray]:
     """Relight every view of a scene under a new sun (paper Sec. 8): ``Relighter(...).render(sun)``.
 
     Parameters
@@ -1963,6 +2138,9 @@ def relight(decomposition: Decomposition, scene: Scene, *, sun: object,
     sun : (3,) array_like, Sun or (azimuth_deg, elevation_deg)
         The new sun (:func:`as_sun_direction`), above the horizon.
     config : RelightConfig, optional
+    client : distributed.Client, optional
+        Render the views as one task per view on a dask cluster (:class:`Relighter`); the images
+        are identical.
 
     Returns
     -------
@@ -1976,4 +2154,4 @@ def relight(decomposition: Decomposition, scene: Scene, *, sun: object,
         views are not the scene's (the message names ``decomposition``).
     """
     direction = as_sun_direction(sun, up=scene.up if isinstance(scene, Scene) else (0.0, 0.0, 1.0))
-    return Relighter(decomposition, scene, config=config).render(direction)
+    return Relighter(decomposition, scene, config=config, client=client).render(direction)

@@ -12,7 +12,7 @@ sun, linear EXR photos with one exposure). Each factor changes one thing, the re
 base setting; every variant is an in-memory :class:`mvintrinsic.Scene` (``dataclasses.replace``
 of the loaded scene), seeded:
 
-* ``proxy``: ``clean`` (``proxy_clean.ply``, the exact mesh), ``mvs`` (``proxy.ply``, the base),
+* ``proxy``: ``clean`` (``proxy_clean.ply``, the exact mesh, subdivided to 20 cm edges), ``mvs`` (``proxy.ply``, the base),
   ``decimated`` (the MVS proxy decimated 10x by open3d's quadric decimation), ``missing`` (half
   of the MVS proxy's area removed as connected patches: the faces whose centroid lies within
   :data:`HOLE_RADIUS` of random, area-weighted face centroids, until half the area is gone);
@@ -80,6 +80,11 @@ HERE = Path(__file__).resolve()
 SEED = 0
 #: Radius of the spheres whose faces are removed from the proxy (``missing``), metres.
 HOLE_RADIUS = 1.5
+#: The ``clean`` proxy is the exact mesh subdivided to edges of at most this many metres within
+#: :data:`CLEAN_RADIUS` of the cameras' centroid (Step 1 carries its quantities on vertices; the
+#: exact mesh's triangles are metres wide), as ``benchmarks/bench_step1_accuracy.py`` does.
+CLEAN_MAX_EDGE = 0.2
+CLEAN_RADIUS = 30.0
 #: Fraction of the proxy's area removed (``missing``).
 MISSING_FRACTION = 0.5
 #: Decimation factor of the ``decimated`` proxy (triangles / this).
@@ -291,8 +296,13 @@ def build_variant(spec: dict, folders: dict) -> tuple:
         stems = [scene.stems[i] for i in spread_indices(len(scene.stems), spec["views"])]
     scene = load_scene(folder, views=stems)
     info: dict = {"views": list(scene.stems)}
-    if spec["proxy"] == "clean":
-        scene = dataclasses.replace(scene, proxy=read_proxy(folder / "proxy_clean.ply"))
+    if spec["proxy"] == "clean":  # the exact mesh, subdivided as the Step-1 benchmarks do (vertex quantities)
+        from mvintrinsic.raytrace import subdivide
+
+        centre = np.mean([v.camera.center for v in scene.views], axis=0)
+        proxy = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centre,
+                          radius=CLEAN_RADIUS)
+        scene = dataclasses.replace(scene, proxy=proxy)
     elif spec["proxy"] == "decimated":
         proxy, info["proxy"] = decimated_proxy(scene.proxy)
         scene = dataclasses.replace(scene, proxy=proxy)

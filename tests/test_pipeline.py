@@ -67,7 +67,7 @@ def test_decompose_reproduces_every_image(demo_scene, demo_result):
 def test_decompose_records_lighting_timings_and_config(demo_result):
     lighting = demo_result.lighting
     assert (lighting.sun_radiance > 0).all()
-    assert lighting.sky.model == "preetham" and lighting.envmap is not None
+    assert lighting.sky.model in ("constant", "preetham", "perez") and lighting.envmap is not None
     for stage in ("step1.environment_shading", "step1.vertex_radiance", "pixels", "sun_pairs", "shadow_labels",
                   "shadow_labels.evidence", "shadow_labels.correspondences", "shadow_labels.palette",
                   "shadow_labels.graph_cut", "segmentation", "matting"):
@@ -210,6 +210,10 @@ def test_sunny_demo_records_direct_sun_and_step4(demo_result):
     assert model["sun"].choice == "direct sun"
     assert model["sun"].measures["contrast"] > 2.0 and model["sun"].measures["pairs"] > 10
     assert model["step4"].choice == "run" and model["step4"].measures["boundary_pixels"] > 100
+    sky = model["sky"]  # the family by its held-out error, recorded with it
+    assert sky.choice == demo_result.lighting.sky.model and sky.measures["chosen_by"] == "held-out error"
+    errors = sky.measures["held_out_error"]
+    assert set(errors) == {"constant", "preetham", "perez"} and errors[sky.choice] <= min(errors.values()) * 1.05
 
 
 def test_presets_are_configs_and_unknown_names_are_refused():

@@ -65,34 +65,38 @@ equation of matting: with ``R``, ``S_env`` and ``S_sun`` locally constant, Eq. 1
 ``B = R S_env`` (the shadowed colour) and ``F = R (S_env + S_sun)`` (the lit colour). The
 closed-form matte is invariant to a global scale of the image except through ``epsilon``, which
 assumes a [0, 1] image, hence the normalisation; the clip (the brightest 0.1% of the pixels,
-highlights) keeps every window's colour variance below 1, where pymatting's closed-form inverse of
-the 3x3 window covariance stays accurate (see ``epsilon`` in :class:`MattingConfig`). Pixels
+highlights) keeps every window's colour variance below 1 (see ``epsilon`` in
+:class:`MattingConfig`). Pixels
 outside the valid mask (sky, invalid) take part in no matting window: every window that touches
 one is dropped from the Laplacian, so the sky neither pulls nor separates the image's values.
 
 Solver
 ------
-pymatting's [3]_ closed-form Laplacian (``cf_laplacian``, Levin's 3x3 windows) is built once per
-view over the whole image; the Laplacian restricted to windows inside a pixel set is the full one
-minus the windows that touch the set's complement (pymatting builds exactly those when asked with
-``is_known``), so no window is computed in a second code path. Each system is solved by
-preconditioned conjugate gradients with pymatting's thresholded incomplete Cholesky factorisation,
-built once per system and shared by its channels (3 + 3 + 1 for the shading layers): the channels
-run in lockstep, so that every iteration makes one sparse product and one pass of triangular
-substitution (a small numba kernel, :func:`_cholesky_solve_block`) for all of them, 3x faster than
-SciPy's ``cg`` one channel at a time with pymatting's one-vector substitution. The band diffusion
-is a small sparse direct solve (SuperLU, all channels at once).
+The closed-form Laplacian (Levin et al.'s Eq. 12, 3x3 windows) is built in NumPy as a stencil:
+one image per coupling offset, the upper half of the 5x5 neighbourhood (13 images; ``L`` is
+symmetric). Each window's regularised colour covariance is factored as ``L D L^T`` in closed form,
+so that every entry is ``delta_ij - (1 + g_i . g_j) / |w|`` with whitened colours ``g``; this stays
+accurate on the rank-1 windows of a two-colour edge, where a cofactor inverse cancels. One pass
+over the windows builds the view's two stencils: over the valid pixels (the visibility matte) and
+over the valid pixels outside the shadow-boundary band (the propagation). A system gathers the
+rows of its unknowns from its stencil, the known pixels' Dirichlet term on the right-hand side,
+with the unknowns in a nested-dissection order computed from their image coordinates
+(:func:`_dissection_order`: separators of 2 rows or columns, cut where the unknowns are fewest),
+and is solved by one sparse LU factorisation (SciPy's SuperLU, without pivoting: the systems are
+symmetric positive definite) shared by its channels: 1 for ``v_sun``, 7 for ``S_sky``, ``S_ind``
+and the cosine. The band diffusion is solved the same way (4-neighbour separators of 1 pixel).
+Every solve's residual is checked against ``rtol`` and reported (:class:`SolveReport`,
+:func:`intrinsic_layers_result`). ``MattingConfig(solver="cg")`` selects conjugate gradients
+preconditioned by an incomplete LU instead (slower; for memory).
 
-Measured on the six courtyard views (2 cores shared with another job, load average 2-2.5; labels
-from the true visibility, mean-shift clusters): 2.5 s per view at 480x360 (1.6-3.3 s) and 15.6 s
-per view at 1000x750 (12.2-20.7 s: Laplacian 0.4 s, visibility matte 1.2-1.7 s over 300 000
-unknowns, shading propagation 10-19 s over 400 000 unknowns, of which the incomplete Cholesky
-factorisation takes 4.6-5.3 s and 15-30 iterations the rest).
-
-pymatting compiles its numba kernels when it is first imported (38 s on 2 cores, every kernel of
-the package, plus 1 s for ours) and caches them next to the sources (``__pycache__``; numba falls
-back to ``NUMBA_CACHE_DIR`` or a user cache when that is read-only); later imports load the
-caches (0.5 s). pymatting is imported lazily, on the first matting call.
+Measured (``benchmarks/bench_matting.py``, ``docs/matting.md``; 2 cores shared with other jobs,
+medians of interleaved repeats) against the former solver, conjugate gradients preconditioned by
+pymatting's [3]_ incomplete Cholesky factor: 1.4-1.6x faster at 480x360, 2.1-4.4x at 1000x750
+(views upsampled from 480x360 and 320x240), 40% less peak memory at 1400x1050; the scores against
+ground truth unchanged to the fourth digit (the direct solve is exact where conjugate gradients
+stopped at ``rtol``, up to 1.4% of a layer's range apart). Nothing is compiled at first use: the
+former pymatting and numba kernels took 38-74 s to compile on the first call after
+``pip install``. The module changes no process-wide state.
 
 References
 ----------
@@ -106,11 +110,10 @@ References
 
 from __future__ import annotations
 
-import contextlib
-import io
+import dataclasses
 import logging
-import os
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -125,9 +128,13 @@ from .scene import View
 from .segmentation import boundary_band
 
 __all__ = [
+    "SOLVERS",
     "MattingConfig",
+    "MattingResult",
+    "SolveReport",
     "guide_image",
     "intrinsic_layers",
+    "intrinsic_layers_result",
     "propagate",
     "shadow_transitions",
     "sun_visibility_matting",
@@ -136,6 +143,9 @@ __all__ = [
 logger = logging.getLogger(__name__)
 
 _SHADOW, _UNDECIDED, _LIT = SHADOW_LABELS["shadow"], SHADOW_LABELS["undecided"], SHADOW_LABELS["lit"]
+
+#: The solvers of :class:`MattingConfig` ``solver`` (see there and the module docstring).
+SOLVERS = ("direct", "cg")
 
 
 @dataclass(frozen=True)
@@ -172,12 +182,13 @@ class MattingConfig:
         it. 3 gives a band about 6 px wide, which holds the penumbra at 1000x750.
     epsilon : float
         Regularisation of the window colour covariance in the matting Laplacian, for images in
-        [0, 1]. Levin et al. and pymatting use ``1e-7``; we use ``1e-6``: pymatting inverts the 3x3
-        covariance by the cofactor formula, whose determinant cancels catastrophically when a
-        window holds exactly two colours (rank 1) and ``epsilon`` is tiny (a noiseless two-colour
-        edge leaked 0.32 across at ``1e-7``, 0.002 at ``1e-6``); on the courtyard views (noisy
-        renders) both values give the same layers to 0.001 in ``v_sun`` error, and ``1e-6`` is
-        20% faster (better conditioned).
+        [0, 1]. Levin et al. and pymatting use ``1e-7``; we use ``1e-6``, chosen when the Laplacian
+        was pymatting's: its cofactor inverse of the 3x3 covariance cancels catastrophically when
+        a window holds exactly two colours (rank 1) and ``epsilon`` is tiny (a noiseless two-colour
+        edge leaked 0.32 across at ``1e-7``, 0.002 at ``1e-6``), and on the courtyard views (noisy
+        renders) both values gave the same layers to 0.001 in ``v_sun`` error. The ``L D L^T``
+        whitening used now is accurate down to ``1e-10`` (tested); the default is kept so that the
+        layers do not change.
     window_radius : int
         Matting windows are ``(2 r + 1)^2`` pixels (Levin et al. and pymatting: 1).
     constraint_weight : float or None
@@ -191,16 +202,29 @@ class MattingConfig:
     white_percentile : float
         Percentile of the valid pixels' largest channel that the guide image maps to 1, in
         (0, 100]; brighter values are clipped (highlights).
+    solver : str
+        How the linear systems are solved (:data:`SOLVERS`): ``"direct"`` (default), a sparse LU
+        factorisation (SciPy's SuperLU) of each system in a nested-dissection order of its pixels,
+        shared by the system's channels; ``"cg"``, conjugate gradients preconditioned by an
+        incomplete LU of the same system (less memory, more time). Measured on 1000x750 views
+        (``benchmarks/bench_matting.py``, ``docs/matting.md``), the direct solve makes the matting
+        2.1-4.4x faster than the former default, conjugate gradients with pymatting's incomplete
+        Cholesky factor (1.4-1.6x at 480x360), and exact where those stopped at ``rtol`` (up to
+        1.4% of a shading layer's range apart); ``"cg"`` took 2.2 s where ``"direct"`` took 0.9 s.
     rtol : float
-        Conjugate-gradient stopping rule: residual norm below ``rtol`` times the right-hand side's.
-        Against a direct solve of a 480x360 shading system, ``1e-6`` leaves a largest error of 0.6%
-        of the layer's range (0.14% at the 99th percentile); ``1e-5`` left 28% (1%).
+        Accepted relative residual ``||A x - b|| / ||b||`` of every system and channel. A direct
+        solve above it is refined (:data:`REFINEMENT_STEPS`); conjugate gradients stop once below
+        it. Against a direct solve of a 480x360 shading system, conjugate gradients stopped at
+        ``1e-6`` left a largest error of 0.6% of the layer's range (0.14% at the 99th percentile);
+        ``1e-5`` left 28% (1%). A system that misses it keeps its last iterate, with a logged
+        warning and ``converged=False`` in its :class:`SolveReport`.
     max_iter : int
-        Largest number of conjugate-gradient iterations per channel (a warning is logged when it is
-        reached and the last iterate is used).
+        Largest number of conjugate-gradient iterations per channel (``solver="cg"``).
     ichol_threshold : float
-        Entries below this are dropped from the incomplete Cholesky preconditioner (pymatting's
-        default 1e-4); larger is faster to factor but needs more iterations.
+        Drop tolerance of the incomplete factorisation that preconditions ``solver="cg"``
+        (SciPy's ``spilu``, an incomplete LU of the symmetric system; entries below this
+        fraction of their column are dropped). The name is that of the former incomplete
+        Cholesky (pymatting's, whose default 1e-4 it keeps), so that saved configurations load.
     shading_floor : float
         Total shading below this fraction of the view's median is raised to it through ``S_ind``,
         so that ``R = I / S_tot`` stays finite (as ``pipeline.step2_layers``: ``1e-3``).
@@ -219,6 +243,7 @@ class MattingConfig:
     max_iter: int = 2000
     ichol_threshold: float = 1e-4
     shading_floor: float = SHADING_FLOOR
+    solver: str = "direct"
 
     def __post_init__(self) -> None:
         for name, least in (("trimap_radius", 1), ("visibility_cluster_width", 0), ("cluster_boundary_width", 0),
@@ -238,6 +263,8 @@ class MattingConfig:
             raise ValueError(f"rtol must be below 1, got {self.rtol!r}")
         if not self.shading_floor < 1:
             raise ValueError(f"shading_floor must be below 1, got {self.shading_floor!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {list(SOLVERS)}, got {self.solver!r}")
 
 
 # --------------------------------------------------------------------------------------------
@@ -367,148 +394,420 @@ def guide_image(image: np.ndarray, *, mask: np.ndarray | None = None, white_perc
     return np.ascontiguousarray(np.minimum(rgb / (white if white > 0 else 1.0), 1.0), dtype=np.float64)
 
 
-def _import_numba():
-    """Import numba with a threading layer that does not clash with open3d's bundled TBB.
+# The matting Laplacian of Levin et al. (their Eq. 12) over windows of (2 r + 1)^2 pixels:
+#
+#   L_ij = sum_{k | i, j in w_k} ( delta_ij - (1 + (I_i - mu_k)^T (Sigma_k + eps / |w_k| I_3)^-1 (I_j - mu_k)) / |w_k| )
+#
+# with mu_k and Sigma_k the mean and covariance of the guide's colours in window w_k. Writing the
+# regularised covariance as L D L^T (the 3x3 LDL^T factorisation, in closed form), the quadratic
+# term is g_i . g_j with the whitened colours g = D^-1/2 L^-1 (I - mu_k): each window adds, for
+# every pair (a, b) of its pixels, -(1 + g_a . g_b) / |w| (plus 1 on the diagonal). Pixels that
+# share a window are at most 2 r apart in both axes, so L is a (4 r + 1)^2-point stencil, stored
+# as one image per coupling offset ``(dy, dx)`` (the upper half: L is symmetric).
 
-    open3d loads its own libtbb (interface 12050); numba's default threading-layer probe then finds
-    a TBB it refuses and emits a ``NumbaWarning`` on the first parallel kernel. Unless the user
-    chose a layer (``NUMBA_THREADING_LAYER``), take the always-available ``workqueue`` layer.
+
+def _window_pixels(radius: int) -> list[tuple[int, int]]:
+    """Offsets ``(dy, dx)`` of a window's pixels from its top-left pixel, row-major."""
+    size = 2 * radius + 1
+    return [(dy, dx) for dy in range(size) for dx in range(size)]
+
+
+def _couplings(radius: int) -> list[tuple[int, int]]:
+    """The coupling offsets ``(dy, dx)`` stored by the stencil: the upper half of ``[-2r, 2r]^2``, row-major."""
+    reach = 2 * radius
+    return [(dy, dx) for dy in range(reach + 1) for dx in range(-reach, reach + 1) if dy > 0 or dx >= 0]
+
+
+def _whitened_colours(guide: np.ndarray, epsilon: float, radius: int) -> list[np.ndarray]:
+    """``g`` of every window pixel: one ``(3, H - 2r, W - 2r)`` array per window pixel (row-major).
+
+    ``guide`` is ``(3, H, W)``; entry ``[:, y, x]`` of array ``a`` belongs to the window whose
+    top-left pixel is ``(y, x)``. The covariance is centred per window (as pymatting's kernel) and
+    factored as ``L D L^T``, which stays accurate where the covariance has rank 1 or 2 (a window of
+    two colours); inverting it by cofactors, as pymatting does, lost the matte across such edges at
+    ``epsilon = 1e-7`` (:class:`MattingConfig`).
     """
-    import numba
+    _, h, w = guide.shape
+    area = (2 * radius + 1) ** 2
+    hh, ww = h - 2 * radius, w - 2 * radius
+    pixels = [guide[:, dy:dy + hh, dx:dx + ww] for dy, dx in _window_pixels(radius)]
+    mean = np.zeros((3, hh, ww))
+    for colours in pixels:
+        mean += colours
+    mean /= area
+    centred = [colours - mean for colours in pixels]
 
-    if numba.config.THREADING_LAYER == "default" and "NUMBA_THREADING_LAYER" not in os.environ:
-        numba.config.THREADING_LAYER = "workqueue"
-    return numba
+    def covariance(i: int, j: int) -> np.ndarray:
+        total = np.zeros((hh, ww))
+        for colours in centred:
+            total += colours[i] * colours[j]
+        return total / area
+
+    regular = epsilon / area  # Sigma_k + eps / |w| I_3 (Levin et al., Eq. 12)
+    a00, a01, a02 = covariance(0, 0) + regular, covariance(0, 1), covariance(0, 2)
+    a11, a12, a22 = covariance(1, 1) + regular, covariance(1, 2), covariance(2, 2) + regular
+    l10, l20 = a01 / a00, a02 / a00
+    d1 = a11 - l10 * a01
+    l21 = (a12 - l20 * a01) / d1
+    d2 = a22 - l20 * a02 - l21 * l21 * d1
+    s0, s1, s2 = 1.0 / np.sqrt(a00), 1.0 / np.sqrt(d1), 1.0 / np.sqrt(d2)
+    for c in centred:  # in place: c <- D^-1/2 L^-1 c
+        y1 = c[1] - l10 * c[0]
+        c[2] -= l20 * c[0] + l21 * y1
+        c[2] *= s2
+        np.multiply(y1, s1, out=c[1])
+        c[0] *= s0
+    return centred
 
 
 class _GuidedLaplacian:
-    """The closed-form matting Laplacian of one guide image, built once, restricted on demand.
+    """The closed-form matting Laplacian of one guide image (Levin et al. [2]_, Eq. 12), as a stencil.
 
-    ``inside(keep)`` is the Laplacian of the windows lying wholly inside ``keep``: Levin's
-    ``L = sum_w L_w`` over windows ``w``, where pymatting's ``is_known`` option builds the sum over
-    the windows that touch the complement of a set; the difference of the two sums is the one we
-    want. Entries of pixels outside ``keep`` vanish: every window through them touches ``~keep``.
+    ``stencils(keep, ...)`` sums the windows lying wholly inside ``keep`` only: a pixel outside
+    ``keep`` takes part in no window, so it neither pulls nor separates the others.
     """
+
+    #: Window rows per band of :meth:`stencils`: cache-sized (at 1000x750, 0.32 s for two stencils
+    #: against 0.62-1.28 s for whole images).
+    TILE = 16
 
     def __init__(self, guide: np.ndarray, config: MattingConfig) -> None:
-        _import_numba()
-        from pymatting.laplacian.cf_laplacian import cf_laplacian  # lazy: numba compiles on first import
-
-        self._cf = cf_laplacian
-        self._guide = guide
-        self._epsilon = float(config.epsilon)
-        self._radius = int(config.window_radius)
         h, w = guide.shape[:2]
         self.shape = (h, w)
-        self._full = self._build(None)
-        # pymatting stores every pixel's (4r + 1)^2 neighbour slots, those outside the image as
-        # explicit zeros in column 0; keep the in-image slots only (their columns are sorted).
-        span = np.arange(-2 * self._radius, 2 * self._radius + 1)
-        rows, cols = np.divmod(np.arange(h * w), w)
-        in_rows = (0 <= rows[:, None] + span) & (rows[:, None] + span < h)
-        in_cols = (0 <= cols[:, None] + span) & (cols[:, None] + span < w)
-        self._slots = (in_rows[:, :, None] & in_cols[:, None, :]).ravel()
-        counts = self._slots.reshape(h * w, -1).sum(axis=1)
-        self._indptr = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
-        self._indices = self._full.indices[self._slots].astype(np.int64)
+        self.radius = int(config.window_radius)
+        self.couplings = _couplings(self.radius)
+        self._slot = {offset: k for k, offset in enumerate(self.couplings)}
+        self._guide = np.ascontiguousarray(np.moveaxis(guide, -1, 0), dtype=np.float64)
+        self._epsilon = float(config.epsilon)
 
-    def _build(self, is_known: np.ndarray | None) -> sp.csr_matrix:
-        known = None if is_known is None else np.ascontiguousarray(is_known, dtype=np.bool_)
-        return self._cf(self._guide, epsilon=self._epsilon, radius=self._radius, is_known=known)
+    def stencils(self, *keeps: np.ndarray) -> list[np.ndarray]:
+        """The Laplacian over the windows inside each of ``keeps``, sharing the work of the windows.
 
-    def inside(self, keep: np.ndarray) -> sp.csr_matrix:
-        """``(H W, H W)`` CSR Laplacian of the windows wholly inside ``keep`` (pixels in row-major order)."""
-        data = self._full.data
-        if not keep.all():
-            data = data - self._build(keep).data
-        n = self.shape[0] * self.shape[1]
-        return sp.csr_matrix((data[self._slots], self._indices, self._indptr), shape=(n, n))
+        Each is ``(K, H, W)`` float64: ``[k, y, x]`` is ``L[(y, x), (y, x) + couplings[k]]`` (0 off
+        the image).
+        """
+        h, w = self.shape
+        r = self.radius
+        outs = [np.zeros((len(self.couplings), h, w)) for _ in keeps]
+        hh, ww = h - 2 * r, w - 2 * r
+        if hh <= 0 or ww <= 0 or not any(keep.any() for keep in keeps):
+            return outs  # no whole window fits in the image or in the kept pixels
+        area = (2 * r + 1) ** 2
+        weights = [ndimage.minimum_filter(keep.astype(np.uint8), size=2 * r + 1, mode="constant", cval=0)
+                   [r:h - r, r:w - r].astype(np.float64) for keep in keeps]  # windows by their top-left pixel
+        offsets = _window_pixels(r)
+        for top in range(0, hh, self.TILE):  # bands of window rows, small enough to stay in cache
+            bottom = min(top + self.TILE, hh)
+            whitened = _whitened_colours(self._guide[:, top:bottom + 2 * r], self._epsilon, r)
+            for g in whitened:
+                g *= 1.0 / np.sqrt(area)  # g_a . g_b now carries the 1 / |w| of Eq. 12
+            tiles = [weight[top:bottom] for weight in weights]
+            value = np.empty((bottom - top, ww))
+            weighted = np.empty_like(value)
+            for a, (ay, ax) in enumerate(offsets):
+                for b in range(a, len(offsets)):
+                    by, bx = offsets[b]
+                    np.einsum("cij,cij->ij", whitened[a], whitened[b], out=value)
+                    value += 1.0 / area  # (1 + g_a . g_b) / |w|
+                    if a == b:
+                        value -= 1.0  # delta_ij
+                    dy, dx = by - ay, bx - ax
+                    if (dy, dx) in self._slot:  # stored at pixel a
+                        slot, rows, cols = self._slot[dy, dx], slice(top + ay, bottom + ay), slice(ax, ax + ww)
+                    else:  # stored at pixel b, coupling a - b
+                        slot, rows, cols = self._slot[-dy, -dx], slice(top + by, bottom + by), slice(bx, bx + ww)
+                    for out, weight in zip(outs, tiles, strict=True):
+                        np.multiply(value, weight, out=weighted)
+                        out[slot, rows, cols] -= weighted
+        return outs
 
 
-#: Diagonal shifts tried, in order, by the incomplete Cholesky factorisation (pymatting's list
-#: without its leading 0: the unshifted thresholded factorisation broke down on every shading system
-#: of the courtyard views, and the failed attempt cost as much as a factorisation). The shift
-#: changes the preconditioner only, never the system solved.
-ICHOL_SHIFTS = (1e-4, 1e-3, 1e-2, 0.1, 0.5, 1.0, 10.0, 100.0, 1e3, 1e4, 1e5)
+def _system(laplacian: _GuidedLaplacian, stencil: np.ndarray, pixels: np.ndarray, diagonal: np.ndarray,
+            known: np.ndarray | None = None, values: np.ndarray | None = None) -> tuple[sp.csc_matrix, np.ndarray]:
+    """``L_PP + diag(diagonal)`` over ``pixels`` (flat, in that order) and ``-L_PK values_K``.
 
-
-def _cholesky_solve_block(data: np.ndarray, indices: np.ndarray, indptr: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """``(L L^T)^-1 rhs`` for a lower-triangular CSC factor ``L`` and ``rhs`` of shape ``(n, m)``.
-
-    pymatting's ``CholeskyDecomposition`` substitutes one vector at a time; here each factor entry
-    is read once for all ``m`` columns (4.6x faster for the 7 shading channels at 1000x750).
-    Compiled with numba on first use (:func:`_block_substitution`).
+    ``known`` ``(H W,)`` bool marks the pixels whose ``values`` ``(H W, C)`` are given (none of
+    ``pixels``). The matrix is symmetric, so its CSR arrays are also its CSC arrays (SuperLU's
+    input). Couplings that vanish (windows outside the kept set, pixels off the image) are dropped.
     """
-    n, m = rhs.shape
-    x = rhs.copy()
-    for j in range(n):  # forward: L y = rhs (column-oriented)
-        start = indptr[j]
-        diagonal = data[start]
-        for c in range(m):
-            x[j, c] /= diagonal
-        for k in range(start + 1, indptr[j + 1]):
-            i = indices[k]
-            value = data[k]
-            for c in range(m):
-                x[i, c] -= value * x[j, c]
-    for i in range(n - 1, -1, -1):  # backward: L^T x = y (row i of L^T is column i of L)
-        start = indptr[i]
-        for k in range(start + 1, indptr[i + 1]):
-            j = indices[k]
-            value = data[k]
-            for c in range(m):
-                x[i, c] -= value * x[j, c]
-        diagonal = data[start]
-        for c in range(m):
-            x[i, c] /= diagonal
-    return x
+    h, w = laplacian.shape
+    n = h * w
+    m = len(pixels)
+    flat = stencil.reshape(len(laplacian.couplings), n)
+    position = np.full(n, -1, dtype=np.int32)  # row of each unknown pixel
+    position[pixels] = np.arange(m, dtype=np.int32)
+    given = np.zeros(0, dtype=np.int64) if known is None else np.flatnonzero(known)
+    rank = np.full(n, -1, dtype=np.int32)  # column of each known pixel in L_PK
+    rank[given] = np.arange(len(given), dtype=np.int32)
+    reach = 2 * laplacian.radius
+    neighbours = [(dy, dx) for dy in range(-reach, reach + 1) for dx in range(-reach, reach + 1)]
+    data = np.empty((len(neighbours), m))
+    columns = np.empty((len(neighbours), m), dtype=np.int32)
+    known_columns = np.empty((len(neighbours), m), dtype=np.int32)
+    for s, (dy, dx) in enumerate(neighbours):
+        # A neighbour off the image has no window in common with the pixel: its stencil value is 0
+        # (one wrapped to another row in the flat index too) and the entry is dropped below.
+        neighbour = pixels + (dy * w + dx)
+        beyond = (neighbour < 0) | (neighbour >= n)
+        neighbour[beyond] = pixels[beyond]
+        if (dy, dx) in laplacian._slot:
+            data[s] = flat[laplacian._slot[dy, dx], pixels]
+        else:
+            data[s] = flat[laplacian._slot[-dy, -dx], neighbour]
+        data[s, beyond] = 0.0
+        columns[s] = position[neighbour]
+        known_columns[s] = rank[neighbour]
+    centre = neighbours.index((0, 0))
+    data[centre] += diagonal
+    columns[centre] = np.arange(m)
+    nonzero = data != 0
+    nonzero[centre] = True
+    data, columns, known_columns, nonzero = data.T, columns.T, known_columns.T, nonzero.T  # row-major entries
+
+    def compact(index: np.ndarray, size: int, kind: type) -> sp.spmatrix:
+        keep = nonzero & (index >= 0)
+        indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
+        return kind((data[keep], index[keep], indptr), shape=(m, size))
+
+    matrix = compact(columns, m, sp.csc_matrix)  # symmetric: the CSR arrays are the CSC arrays
+    matrix.sort_indices()
+    channels = 0 if values is None else values.shape[1]
+    rhs = np.zeros((m, channels))
+    if len(given):
+        rhs -= compact(known_columns, len(given), sp.csr_matrix) @ values[given]
+    return matrix, rhs
 
 
-_COMPILED: dict[str, object] = {}
+def _dissection_order(pixels: np.ndarray, width: int, reach: int, *, leaf: int = 32) -> np.ndarray:
+    """A nested-dissection elimination order of image pixels (George 1973) from their coordinates.
+
+    Two pixels are coupled when both coordinates differ by at most ``reach``. A set of more than
+    ``leaf`` pixels is split by ``reach`` consecutive rows (or columns), its separator: the cut
+    through an empty stretch (no separator at all) leaving the most pixels on its smaller side if
+    there is one, else the cut with the fewest separator pixels among those leaving at least a fifth
+    of the set on each side (if any), with ties to the most balanced. Each half is ordered the same
+    way, first, and the separator last, so that eliminating a half never fills the other; smaller
+    sets keep their row-major order. All the sets of one level of the recursion are split at once.
+
+    Parameters
+    ----------
+    pixels : (n,) int
+        Flat indices (row-major) of the pixels in an image ``width`` pixels wide.
+    width, reach : int
+
+    Returns
+    -------
+    (n,) int64
+        A permutation: eliminate ``pixels[order]`` in sequence.
+    """
+    pixels = np.asarray(pixels, dtype=np.int64)
+    n = len(pixels)
+    coordinates = np.divmod(pixels, width)  # rows, columns
+    # Each pixel's path down the recursion as base-3 digits (0 first half, 1 second half, 2 the
+    # separator, eliminated after both): sorting the paths, then the flat indices, is the order.
+    path = np.zeros(n, dtype=np.int64)
+    digits = np.zeros(n, dtype=np.int64)
+    active = np.arange(n)  # pixels of the sets still to split, and their set
+    group = np.zeros(n, dtype=np.int64)
+    worst = np.iinfo(np.int64).max
+    for _ in range(39):  # 3**39 < 2**63
+        large = np.bincount(group)[group] > leaf
+        active, group = active[large], group[large]
+        if not len(active):
+            break
+        present = np.bincount(group) > 0
+        group = (np.cumsum(present) - 1)[group]  # sets numbered 0..k-1
+        k = int(present.sum())
+        sizes = np.bincount(group, minlength=k)
+        best = np.full(k, worst)
+        best_axis, best_cut, lows = np.zeros(k, dtype=np.int64), np.zeros(k, dtype=np.int64), []
+        for axis in (0, 1):
+            coordinate = coordinates[axis][active]
+            low, high = np.full(k, worst), np.full(k, -1)
+            np.minimum.at(low, group, coordinate)
+            np.maximum.at(high, group, coordinate)
+            lows.append(low)
+            span = high - low + 1
+            start = np.cumsum(span) - span  # each set's stretch of the concatenated histograms
+            below = np.concatenate([[0], np.cumsum(np.bincount(start[group] + coordinate - low[group],
+                                                               minlength=int(span.sum())))])
+            count = np.maximum(span - reach - 1, 0)  # cuts j: rows low+j .. low+j+reach-1 separate
+            owner = np.repeat(np.arange(k), count)
+            if not len(owner):
+                continue
+            j = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count) + 1
+            before = below[start[owner] + j] - below[start[owner]]
+            separator = below[start[owner] + j + reach] - below[start[owner] + j]
+            m = sizes[owner]
+            smaller = np.minimum(before, m - before - separator)
+            usable = smaller > 0
+            rank = np.where(separator == 0, 0, np.where(5 * smaller >= m, 1, 2))  # free, balanced, other
+            score = np.where(usable, (rank * (n + 1) + separator) * (n + 1) + (m - smaller), worst)
+            lowest = np.full(k, worst)
+            np.minimum.at(lowest, owner, score)
+            hit = np.flatnonzero((score == lowest[owner]) & (score < best[owner]))
+            hit = hit[np.unique(owner[hit], return_index=True)[1]]  # the first best cut of each set
+            best[owner[hit]], best_axis[owner[hit]], best_cut[owner[hit]] = score[hit], axis, j[hit]
+        split = (best < worst)[group]  # a set without a usable cut stays whole
+        active, group = active[split], group[split]
+        if not len(active):
+            break
+        axis = best_axis[group]
+        relative = np.where(axis == 0, coordinates[0][active] - lows[0][group],
+                            coordinates[1][active] - lows[1][group])
+        cut = best_cut[group]
+        part = np.where(relative < cut, 0, np.where(relative < cut + reach, 2, 1))
+        path[active] = 3 * path[active] + part
+        digits[active] += 1
+        halves = part != 2
+        active, group = active[halves], 2 * group[halves] + part[halves]
+    if n:
+        path *= 3 ** (digits.max() - digits)
+    return np.lexsort((pixels, path))
 
 
-def _block_substitution():
-    """:func:`_cholesky_solve_block` compiled by numba (cached on disk, like pymatting's kernels)."""
-    if "solve" not in _COMPILED:
-        numba = _import_numba()
-        _COMPILED["solve"] = numba.njit(cache=True, nogil=True)(_cholesky_solve_block)
-    return _COMPILED["solve"]
+# --------------------------------------------------------------------------------------------
+# Solvers
+# --------------------------------------------------------------------------------------------
+
+#: Steps of iterative refinement a direct solve may take to bring its residual below ``rtol``.
+REFINEMENT_STEPS = 3
+
+#: Fill allowed to SciPy's incomplete LU (``spilu``'s ``fill_factor``) preconditioning ``solver="cg"``.
+ILU_FILL = 10.0
 
 
-def _preconditioner(matrix: sp.csr_matrix, config: MattingConfig):
-    """``M^-1`` of pymatting's thresholded incomplete Cholesky factorisation ``M = L L^T`` of ``matrix``."""
-    _import_numba()
-    from pymatting.preconditioner.ichol import ichol
+@dataclass(frozen=True)
+class SolveReport:
+    """How one linear system of the matting was solved.
 
-    # ichol prints a "PERFORMANCE WARNING" to stdout when it needs a larger shift; route it to the
-    # log (the core never prints).
-    with contextlib.redirect_stdout(io.StringIO()) as printed:
-        factor = ichol(matrix.T.tocsc(), discard_threshold=config.ichol_threshold,  # symmetric: A^T = A
-                       shifts=list(ICHOL_SHIFTS))
-    if printed.getvalue().strip():
-        logger.debug("pymatting ichol: %s", " ".join(printed.getvalue().split()))
-    data, indices, indptr = factor.Ltuple
-    logger.debug("ichol: %d unknowns, %d entries in A, %d in the factor", matrix.shape[0], matrix.nnz, len(data))
-    solve = _block_substitution()
+    Parameters
+    ----------
+    what : str
+        The system, e.g. ``"sun visibility matting 'view_000'"``.
+    solver : str
+        ``"direct"`` (sparse LU), ``"cg"`` (preconditioned conjugate gradients), or ``"none"``
+        (no unknown).
+    unknowns : int
+        Size of the system.
+    channels : int
+        Right-hand sides solved with the same matrix.
+    converged : bool
+        Every channel's relative residual ``||A x - b|| / ||b||`` is at most ``rtol``.
+    n_iter : int
+        Conjugate-gradient iterations (the largest over the channels), or refinement steps of a
+        direct solve (0 when the first solution was accurate enough).
+    residual : float
+        Largest relative residual over the channels (0 for a zero right-hand side).
+    seconds : float
+        Wall-clock time of the solve (factorisation included).
+    """
 
-    def apply(residual: np.ndarray) -> np.ndarray:
-        return solve(data, indices, indptr, np.ascontiguousarray(residual, dtype=np.float64))
+    what: str
+    solver: str
+    unknowns: int
+    channels: int
+    converged: bool
+    n_iter: int
+    residual: float
+    seconds: float
 
-    return apply
+    def to_dict(self) -> dict:
+        """JSON-ready dictionary of the fields."""
+        return dataclasses.asdict(self)
 
 
-def _solve(matrix: sp.csr_matrix, rhs: np.ndarray, start: np.ndarray, config: MattingConfig, what: str) -> np.ndarray:
-    """Solve the SPD system ``matrix @ X = rhs`` (``(n, m)``) by preconditioned conjugate gradients.
+def _relative_residual(matrix: sp.spmatrix, x: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``||rhs - matrix x|| / ||rhs||`` per column (0 where ``rhs`` is 0 and so is the residual)."""
+    residual = np.linalg.norm(rhs - matrix @ x, axis=0)
+    norm = np.linalg.norm(rhs, axis=0)
+    return np.divide(residual, norm, out=np.where(residual > 0, np.inf, 0.0), where=norm > 0)
 
-    The ``m`` columns are independent conjugate-gradient runs (Hestenes and Stiefel, with the
-    incomplete Cholesky preconditioner ``M``) advanced in lockstep so that each iteration makes one
-    sparse product and one triangular substitution for all columns; a column stops once its residual
-    norm is below ``config.rtol`` times its right-hand side's. A column still above after
-    ``config.max_iter`` iterations keeps its last iterate, with a logged warning.
+
+def _lu(matrix: sp.csc_matrix, *, ordered: bool, drop_tol: float | None = None):
+    """SuperLU factor of a symmetric positive definite ``matrix``; incomplete with ``drop_tol``.
+
+    No pivoting (``diag_pivot_thresh=0``, symmetric mode): a positive definite matrix needs none.
+    The complete factor eliminates in the given order when ``ordered`` (nested dissection, see
+    :func:`_dissection_order`), else in SuperLU's minimum degree order of ``A^T + A``; the
+    incomplete one always in the latter (a nested-dissection order made a poorer preconditioner:
+    53 iterations instead of 7 on a 1000x750 shading system).
+    """
+    options = {"diag_pivot_thresh": 0.0, "options": {"SymmetricMode": True}}
+    if drop_tol is None:
+        return spla.splu(matrix, permc_spec="NATURAL" if ordered else "MMD_AT_PLUS_A", **options)
+    return spla.spilu(matrix, drop_tol=drop_tol, fill_factor=ILU_FILL, permc_spec="MMD_AT_PLUS_A", **options)
+
+
+def _solve(matrix: sp.csc_matrix, rhs: np.ndarray, start: np.ndarray, config: MattingConfig, what: str, *,
+           ordered: bool = False) -> tuple[np.ndarray, SolveReport]:
+    """Solve the symmetric positive definite system ``matrix @ X = rhs`` (``(n, m)``).
+
+    ``config.solver == "direct"``: one sparse LU factorisation (SuperLU, no pivoting) serves the
+    ``m`` columns; its residual is checked against ``config.rtol`` and, above it, refined
+    (:data:`REFINEMENT_STEPS`). ``"cg"``: conjugate gradients from ``start``, preconditioned by
+    SciPy's incomplete LU (drop tolerance ``config.ichol_threshold``), the ``m`` columns in
+    lockstep; each column stops once its residual norm is below ``config.rtol`` times its
+    right-hand side's. A direct factorisation that fails (out of memory, or a pivot of exactly 0)
+    falls back to ``"cg"``. A solve that misses ``rtol`` keeps its last iterate, logs a warning and
+    says so in the report (``converged`` False).
+
+    ``ordered`` says that the unknowns are already in a fill-reducing order
+    (:func:`_dissection_order`); otherwise SuperLU orders them (minimum degree).
     """
     began = time.perf_counter()
-    precondition = _preconditioner(matrix, config)
-    factored = time.perf_counter()
+    n, channels = rhs.shape
+    if n == 0:
+        return np.zeros((0, channels)), SolveReport(what, "none", 0, channels, True, 0, 0.0, 0.0)
+    solver = config.solver
+    x = steps = None
+    if solver == "direct":
+        try:
+            factor = _lu(matrix, ordered=ordered)
+        except (RuntimeError, MemoryError) as error:  # a zero pivot, or a factor too large
+            logger.warning("%s: direct solve failed (%s); using conjugate gradients", what, error)
+            solver = "cg"
+        else:
+            x = factor.solve(rhs)
+            residual = _relative_residual(matrix, x, rhs)
+            steps = 0
+            while residual.max() > config.rtol and steps < REFINEMENT_STEPS:
+                x += factor.solve(rhs - matrix @ x)
+                residual = _relative_residual(matrix, x, rhs)
+                steps += 1
+    if solver == "cg":
+        x, steps = _conjugate_gradients(matrix, rhs, start, config)
+        residual = _relative_residual(matrix, x, rhs)
+    converged = bool(residual.max() <= config.rtol)
+    if not converged:
+        limit = (f"{REFINEMENT_STEPS} refinement steps" if solver == "direct"
+                 else f"{config.max_iter} conjugate-gradient iterations")
+        logger.warning("%s: the %s solve stopped after %s without reaching rtol=%g on %d of %d channels "
+                       "(largest relative residual %.3g); using the last iterate", what, solver, limit,
+                       config.rtol, int((residual > config.rtol).sum()), channels, float(residual.max()))
+    report = SolveReport(what, solver, int(n), int(channels), converged, int(steps), float(residual.max()),
+                         time.perf_counter() - began)
+    logger.debug("%s", report)
+    return x, report
+
+
+def _conjugate_gradients(matrix: sp.csc_matrix, rhs: np.ndarray, start: np.ndarray,
+                         config: MattingConfig) -> tuple[np.ndarray, int]:
+    """Block of independent preconditioned conjugate-gradient runs (Hestenes and Stiefel) in lockstep.
+
+    Each iteration makes one sparse product and one application of the incomplete factor for all
+    columns. Returns the iterate and the number of iterations of the slowest column.
+    """
+    try:
+        factor = _lu(matrix, ordered=False, drop_tol=config.ichol_threshold)
+        precondition = factor.solve
+    except (RuntimeError, MemoryError) as error:
+        logger.warning("incomplete LU failed (%s); conjugate gradients preconditioned by the diagonal", error)
+        inverse = 1.0 / matrix.diagonal()[:, None]
+
+        def precondition(residual: np.ndarray) -> np.ndarray:
+            return inverse * residual
+
     x = np.array(start, dtype=np.float64, order="C")
     residual = rhs - matrix @ x
     target = config.rtol * np.linalg.norm(rhs, axis=0)
@@ -533,17 +832,11 @@ def _solve(matrix: sp.csr_matrix, rhs: np.ndarray, start: np.ndarray, config: Ma
             beta = np.divide(rz_next, rz, out=np.zeros_like(rz), where=active & (rz != 0))
             rz = rz_next
             direction = z + beta * direction
-    if active.any():
-        logger.warning("%s: conjugate gradients stopped after %d iterations without reaching rtol=%g on "
-                       "%d of %d channels; using the last iterate", what, config.max_iter, config.rtol,
-                       int(active.sum()), len(active))
-    logger.debug("%s: %d unknowns, ichol %.2f s, cg %.2f s, iterations %s", what, matrix.shape[0],
-                 factored - began, time.perf_counter() - factored, iterations.tolist())
-    return x
+    return x, int(iterations.max())
 
 
 def _diffuse(values: np.ndarray, band: np.ndarray, mask: np.ndarray, fallback: np.ndarray,
-             config: MattingConfig) -> np.ndarray:
+             config: MattingConfig, what: str) -> tuple[np.ndarray, SolveReport | None]:
     """Fill ``band`` by harmonic interpolation (4-neighbour graph Laplacian over ``mask``).
 
     Solves ``(D - W + delta I) x = W x_border + delta fallback`` on the band pixels, where ``W``
@@ -551,17 +844,20 @@ def _diffuse(values: np.ndarray, band: np.ndarray, mask: np.ndarray, fallback: n
     """
     out = values.copy()
     if not band.any():
-        return out
+        return out, None
     h, w = band.shape
-    index = np.full(h * w, -1, dtype=np.int64)
     flat_band = band.ravel()
-    index[flat_band] = np.arange(int(flat_band.sum()))
-    n = int(flat_band.sum())
+    pixels = np.flatnonzero(flat_band)
+    pixels = pixels[_dissection_order(pixels, w, 1)]  # 4-neighbours: coupled within 1 px
+    n = len(pixels)
+    index = np.full(h * w, -1, dtype=np.int64)
+    index[pixels] = np.arange(n)
     flat_values = values.reshape(h * w, -1)
     flat_mask = mask.ravel()
     pixel = np.arange(h * w).reshape(h, w)
     rows, cols, degree = [], [], np.zeros(n)
-    rhs = config.prior_weight * fallback.reshape(h * w, -1)[flat_band].astype(np.float64)
+    start = fallback.reshape(h * w, -1)[pixels].astype(np.float64)
+    rhs = config.prior_weight * start
     for a, b in ((pixel[:, :-1], pixel[:, 1:]), (pixel[:-1], pixel[1:])):
         a, b = a.ravel(), b.ravel()
         linked = flat_mask[a] & flat_mask[b] & (flat_band[a] | flat_band[b])
@@ -577,15 +873,24 @@ def _diffuse(values: np.ndarray, band: np.ndarray, mask: np.ndarray, fallback: n
     rows = np.concatenate(rows)
     cols = np.concatenate(cols)
     matrix = sp.csc_matrix((np.full(len(rows), -1.0), (rows, cols)), shape=(n, n))
-    matrix = matrix + sp.diags(degree + config.prior_weight, format="csc")
-    solution = spla.splu(matrix).solve(rhs)
-    out.reshape(h * w, -1)[flat_band] = solution
-    return out
+    matrix = (matrix + sp.diags(degree + config.prior_weight, format="csc")).tocsc()
+    solution, report = _solve(matrix, rhs, start, config, f"{what} (band diffusion)", ordered=True)
+    out.reshape(h * w, -1)[pixels] = solution
+    return out, report
 
 
-def _propagate(laplacian: _GuidedLaplacian, values: np.ndarray, known: np.ndarray, mask: np.ndarray,
-               band: np.ndarray, config: MattingConfig, what: str, start: np.ndarray | None = None) -> np.ndarray:
-    """Image-guided propagation over ``mask & ~band``, then diffusion into ``band`` (module docstring)."""
+def _ordered(pixels: np.ndarray, laplacian: _GuidedLaplacian) -> np.ndarray:
+    """``pixels`` (flat) in the nested-dissection order of the Laplacian's coupling reach."""
+    return pixels[_dissection_order(pixels, laplacian.shape[1], 2 * laplacian.radius)]
+
+
+def _propagate(laplacian: _GuidedLaplacian, stencil: np.ndarray, values: np.ndarray, known: np.ndarray,
+               mask: np.ndarray, band: np.ndarray, config: MattingConfig, what: str,
+               start: np.ndarray | None = None) -> tuple[np.ndarray, list[SolveReport]]:
+    """Image-guided propagation over ``mask & ~band``, then diffusion into ``band`` (module docstring).
+
+    ``stencil`` is the Laplacian over the windows inside ``mask & ~band``.
+    """
     h, w, channels = values.shape
     out = np.array(values, dtype=np.float64)
     known = known & mask & ~band
@@ -595,25 +900,29 @@ def _propagate(laplacian: _GuidedLaplacian, values: np.ndarray, known: np.ndarra
     free = mask & ~band
     flat = out.reshape(h * w, channels)
     guess = fallback if start is None else np.asarray(start, dtype=np.float64).reshape(h * w, channels)
-    lap = laplacian.inside(free)
+    reports = []
     if config.constraint_weight is None:
-        # Hard constraints (lambda -> infinity): L_UU x_U = -L_UK s_K (+ delta (p_U - x_U)).
-        u, k = np.flatnonzero(free & ~known), np.flatnonzero(known)
-        if len(u):
-            rows = lap[u]
-            matrix = (rows[:, u] + sp.diags(np.full(len(u), config.prior_weight), format="csr")).tocsr()
-            rhs = -(rows[:, k] @ flat[k]) + config.prior_weight * fallback[u]
-            flat[u] = _solve(matrix, rhs, guess[u], config, what)
+        # Hard constraints (lambda -> infinity): (L_UU + delta I) x_U = -L_UK s_K + delta p_U.
+        pixels = _ordered(np.flatnonzero(free & ~known), laplacian)
+        if len(pixels):
+            matrix, rhs = _system(laplacian, stencil, pixels, np.full(len(pixels), config.prior_weight),
+                                  known=known.ravel(), values=flat)
+            rhs += config.prior_weight * fallback[pixels]
+            flat[pixels], report = _solve(matrix, rhs, guess[pixels], config, what, ordered=True)
+            reports.append(report)
     else:
         # (L + lambda D_K + delta I) x = lambda D_K s + delta p over every pixel of mask & ~band.
-        pixels = np.flatnonzero(free)
+        pixels = _ordered(np.flatnonzero(free), laplacian)
         constrained = known.ravel()[pixels]
         weight = np.where(constrained, config.constraint_weight, 0.0) + config.prior_weight
-        matrix = (lap[pixels][:, pixels] + sp.diags(weight, format="csr")).tocsr()
+        matrix, _ = _system(laplacian, stencil, pixels, weight)
         rhs = (config.constraint_weight * np.where(constrained[:, None], flat[pixels], 0.0)
                + config.prior_weight * fallback[pixels])
-        flat[pixels] = _solve(matrix, rhs, np.where(constrained[:, None], flat[pixels], guess[pixels]), config, what)
-    return _diffuse(out, band & mask, mask, fallback.reshape(h, w, channels), config)
+        flat[pixels], report = _solve(matrix, rhs, np.where(constrained[:, None], flat[pixels], guess[pixels]),
+                                      config, what, ordered=True)
+        reports.append(report)
+    out, report = _diffuse(out, band & mask, mask, fallback.reshape(h, w, channels), config, what)
+    return out, reports + ([] if report is None else [report])
 
 
 def _trimap_unknown(labels: np.ndarray, mask: np.ndarray, radius: int) -> np.ndarray:
@@ -638,29 +947,32 @@ def _trimap_unknown(labels: np.ndarray, mask: np.ndarray, radius: int) -> np.nda
     return unknown
 
 
-def _matte(laplacian: _GuidedLaplacian, labels: np.ndarray, mask: np.ndarray, clusters: np.ndarray | None,
-           config: MattingConfig) -> np.ndarray:
-    """Closed-form matte of ``v_sun`` (float64, 0 outside ``mask``) from the label trimap."""
+def _matte(laplacian: _GuidedLaplacian, stencil: np.ndarray, labels: np.ndarray, mask: np.ndarray,
+           clusters: np.ndarray | None, config: MattingConfig, what: str) -> tuple[np.ndarray, SolveReport | None]:
+    """Closed-form matte of ``v_sun`` (float64, 0 outside ``mask``) from the label trimap.
+
+    ``stencil`` is the Laplacian over the windows inside ``mask``.
+    """
     unknown = _trimap_unknown(labels, mask, config.trimap_radius)
     if clusters is not None and config.visibility_cluster_width > 0:
         unknown |= boundary_band(np.where(mask, clusters, -1), config.visibility_cluster_width)
     known = mask & ~unknown
     visibility = np.where(mask & (labels == _LIT), 1.0, 0.0)
     if not unknown.any():
-        return visibility
+        return visibility, None
     if not known.any():
-        logger.warning("sun visibility matting: no labelled pixel outside the trimap band; keeping the labels")
-        return np.where(mask & (labels == _UNDECIDED), 0.5, visibility)
+        logger.warning("%s: no labelled pixel outside the trimap band; keeping the labels", what)
+        return np.where(mask & (labels == _UNDECIDED), 0.5, visibility), None
     fallback = nearest_fill(visibility, known).ravel()
-    u, k = np.flatnonzero(unknown), np.flatnonzero(known)
-    rows = laplacian.inside(mask)[u]
+    pixels = _ordered(np.flatnonzero(unknown), laplacian)
     # Levin et al. with the known pixels as Dirichlet values (as pymatting's estimate_alpha_cf):
-    # L_UU v_U = -L_UK v_K, plus the weak pull delta (p_U - v_U) that keeps L_UU definite.
-    matrix = (rows[:, u] + sp.diags(np.full(len(u), config.prior_weight), format="csr")).tocsr()
-    rhs = -(rows[:, k] @ visibility.ravel()[k]) + config.prior_weight * fallback[u]
-    solution = _solve(matrix, rhs[:, None], fallback[u][:, None], config, "sun visibility matting")[:, 0]
-    visibility.ravel()[u] = np.clip(solution, 0.0, 1.0)
-    return visibility
+    # (L_UU + delta I) v_U = -L_UK v_K + delta p_U; the weak pull toward p keeps L_UU definite.
+    matrix, rhs = _system(laplacian, stencil, pixels, np.full(len(pixels), config.prior_weight),
+                          known=known.ravel(), values=visibility.reshape(-1, 1))
+    rhs += config.prior_weight * fallback[pixels, None]
+    solution, report = _solve(matrix, rhs, fallback[pixels, None], config, what, ordered=True)
+    visibility.ravel()[pixels] = np.clip(solution[:, 0], 0.0, 1.0)
+    return visibility, report
 
 
 # --------------------------------------------------------------------------------------------
@@ -725,7 +1037,9 @@ def sun_visibility_matting(
     if not valid.any():
         return np.zeros(shape, dtype=np.float32)
     laplacian = _GuidedLaplacian(guide_image(image, mask=valid, white_percentile=config.white_percentile), config)
-    return _matte(laplacian, labels, valid, clusters, config).astype(np.float32)
+    stencil = laplacian.stencils(valid)[0]
+    visibility, _ = _matte(laplacian, stencil, labels, valid, clusters, config, "sun visibility matting")
+    return visibility.astype(np.float32)
 
 
 def propagate(
@@ -800,8 +1114,36 @@ def propagate(
     if not constraint.any():
         raise ValueError("known must hold at least one pixel inside mask and outside band")
     laplacian = _GuidedLaplacian(guide_image(image, mask=valid, white_percentile=config.white_percentile), config)
-    out = _propagate(laplacian, array, constraint, valid, band & valid, config, "propagation")
+    band = band & valid
+    stencil = laplacian.stencils(valid & ~band)[0]
+    out, _ = _propagate(laplacian, stencil, array, constraint, valid, band, config, "propagation")
     return out[..., 0] if squeeze else out
+
+
+@dataclass(frozen=True)
+class MattingResult:
+    """The layers of a view from :func:`intrinsic_layers_result`, with how their systems were solved.
+
+    Parameters
+    ----------
+    layers : IntrinsicLayers
+        As :func:`intrinsic_layers` returns them.
+    solves : tuple of SolveReport
+        One per linear system, in order: the visibility matte, the shading propagation and the
+        band diffusion (those that had unknowns).
+    timings : mapping of str to float
+        Seconds of ``laplacian`` (the guide and its two stencils), ``visibility`` and
+        ``propagation`` (diffusion included).
+    """
+
+    layers: IntrinsicLayers
+    solves: tuple[SolveReport, ...] = ()
+    timings: Mapping[str, float] = dataclasses.field(default_factory=dict)
+
+    @property
+    def converged(self) -> bool:
+        """Every system reached ``rtol``."""
+        return all(report.converged for report in self.solves)
 
 
 def intrinsic_layers(
@@ -819,12 +1161,14 @@ def intrinsic_layers(
        elsewhere (:func:`sun_visibility_matting`);
     2. ``S_sky``, ``S_ind`` and ``cos omega_sun`` propagated from the proxy pixels away from
        cluster boundaries and shadow boundaries, guided by the image; the shadow-boundary band
-       filled by diffusion (:func:`propagate`); one Laplacian for both steps;
+       filled by diffusion (:func:`propagate`); one guide image for both steps;
     3. ``S_sun = L_sun max(0, cos)`` (Eq. 3), ``S_tot = S_sky + S_ind + v_sun S_sun`` (Eq. 17) and
        ``R = I / S_tot``. Propagated shading is clipped at 0 (the matting Laplacian can overshoot)
        and the cosine to [0, 1]. As in ``pipeline.step2_layers``, where ``S_tot`` is below
        ``config.shading_floor`` times the view's median, ``S_ind`` is raised to reach it, so ``R``
        stays finite and ``R * S_tot`` reproduces the image.
+
+    :func:`intrinsic_layers_result` returns the same layers with a report of every linear solve.
 
     Parameters
     ----------
@@ -853,6 +1197,30 @@ def intrinsic_layers(
     ValueError, TypeError
         Naming the argument, for inputs of the wrong shape, dtype or range.
     """
+    return intrinsic_layers_result(view, quantities, labels, sun_radiance, clusters=clusters, config=config).layers
+
+
+def intrinsic_layers_result(
+    view: View,
+    quantities: PixelQuantities,
+    labels: np.ndarray,
+    sun_radiance: np.ndarray,
+    *,
+    clusters: np.ndarray | None = None,
+    config: MattingConfig | None = None,
+) -> MattingResult:
+    """:func:`intrinsic_layers`, with the report of each linear solve and the seconds per part.
+
+    A solve that misses ``config.rtol`` is logged as a warning and recorded in its
+    :class:`SolveReport` (``converged`` False, ``residual``, ``n_iter``); the layers keep its last
+    iterate, as :func:`intrinsic_layers` does.
+
+    Parameters and errors as :func:`intrinsic_layers`.
+
+    Returns
+    -------
+    MattingResult
+    """
     config = config_or_default(config, MattingConfig)
     if not isinstance(view, View):
         raise TypeError(f"view must be a View, got {describe(view)}")
@@ -872,27 +1240,38 @@ def intrinsic_layers(
     indirect = np.where(valid[..., None], quantities.indirect, 0.0).astype(np.float64)
     cosine = np.where(valid, quantities.cosine, 0.0).astype(np.float64)
     visibility = np.zeros(shape)
-    began = time.perf_counter()
+    reports: list[SolveReport] = []
+    timings: dict[str, float] = {}
     if valid.any():
+        began = time.perf_counter()
         laplacian = _GuidedLaplacian(guide_image(image, mask=valid, white_percentile=config.white_percentile), config)
-        built = time.perf_counter()
-        visibility = _matte(laplacian, labels, valid, clusters, config)
-        matted = time.perf_counter()
         band = valid & _near(shadow_transitions(labels, mask=valid), config.shadow_band_radius)
+        whole, outside_band = laplacian.stencils(valid, valid & ~band)
+        timings["laplacian"] = time.perf_counter() - began
+        began = time.perf_counter()
+        visibility, report = _matte(laplacian, whole, labels, valid, clusters, config,
+                                    f"sun visibility matting {view.stem!r}")
+        del whole
+        reports += [] if report is None else [report]
+        timings["visibility"] = time.perf_counter() - began
+        began = time.perf_counter()
         constraints = valid & ~quantities.filled & ~band
         if clusters is not None:
             constraints &= ~boundary_band(np.where(valid, clusters, -1), config.cluster_boundary_width)
         stacked = np.concatenate([sky, indirect, cosine[..., None]], axis=2)
         if constraints.any():
-            stacked = _propagate(laplacian, stacked, constraints, valid, band, config,
-                                 f"shading propagation {view.stem!r}", start=stacked)
+            stacked, propagated = _propagate(laplacian, outside_band, stacked, constraints, valid, band, config,
+                                             f"shading propagation {view.stem!r}", start=stacked)
+            reports += propagated
         else:
             logger.warning("view %r: no proxy pixel left as a constraint; shading layers are the Step-1 values",
                            view.stem)
         sky = np.maximum(stacked[..., 0:3], 0.0)
         indirect = np.maximum(stacked[..., 3:6], 0.0)
         cosine = np.clip(stacked[..., 6], 0.0, 1.0)
+        timings["propagation"] = time.perf_counter() - began
         logger.info("view %r: Laplacian %.2f s, visibility matte %.2f s, shading propagation %.2f s", view.stem,
-                    built - began, matted - built, time.perf_counter() - matted)
-    return layers_from_shading(view, valid, sky, indirect, visibility, cosine, radiance, labels,  # Eqs. 3, 17
-                               floor=config.shading_floor)
+                    timings["laplacian"], timings["visibility"], timings["propagation"])
+    layers = layers_from_shading(view, valid, sky, indirect, visibility, cosine, radiance, labels,  # Eqs. 3, 17
+                                 floor=config.shading_floor)
+    return MattingResult(layers, tuple(reports), timings)

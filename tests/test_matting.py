@@ -4,25 +4,37 @@ Known answers: a penumbra rendered with the image model (Eq. 1) and a linear vis
 linear blend of the lit and shadowed colours, the case where closed-form matting recovers the
 blend; a linear field is reproduced from sparse constraints on a uniform image, and a step
 between two colours does not leak across their edge. Invariants: ``R * S_tot == I`` (Eq. 17),
-finite layers, zeros and label 128 off the valid pixels. The solver is checked on a system with a
-known solution.
+finite layers, zeros and label 128 off the valid pixels. The Laplacian is checked against Levin
+et al.'s Eq. 12 summed window by window, the nested-dissection order against SuperLU's own
+ordering, both solvers on a system with a known solution and against each other, and the solve
+reports (converged or not) that the layers come with.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from scipy.sparse import linalg as spla
 
 from mvintrinsic.camera import Camera
 from mvintrinsic.matting import (
     MattingConfig,
-    _preconditioner,
+    MattingResult,
+    SolveReport,
+    _dissection_order,
+    _GuidedLaplacian,
+    _ordered,
     _solve,
+    _system,
     guide_image,
     intrinsic_layers,
+    intrinsic_layers_result,
     propagate,
     shadow_transitions,
     sun_visibility_matting,
@@ -40,7 +52,10 @@ TOL = {
     "leak": 0.02,         # value leaking across a strong colour edge
     "diffusion": 1e-3,    # harmonic fill of a band, relative to the field
     "invariant": 1e-4,    # relative |R * S_tot - I| on valid pixels (the acceptance criterion)
-    "solver": 1e-6,       # conjugate gradients against a direct solve
+    "solver": 1e-6,       # a solve against the known solution
+    "laplacian": 1e-12,   # the stencil Laplacian against Levin et al.'s Eq. 12 term by term (relative)
+    "rank1": 1e-5,        # leak across a noiseless two-colour edge at epsilon = 1e-8 (rank-1 windows)
+    "solvers": 1e-4,      # layers of solver="direct" against solver="cg" (relative)
 }
 
 H, W = 24, 48
@@ -86,7 +101,7 @@ def binary_labels(visibility: np.ndarray) -> np.ndarray:
     ("trimap_radius", 0), ("trimap_radius", 2.5), ("visibility_cluster_width", -1), ("cluster_boundary_width", True),
     ("shadow_band_radius", -2), ("window_radius", 0), ("max_iter", 0), ("epsilon", 0.0), ("epsilon", np.inf),
     ("constraint_weight", -1.0), ("prior_weight", 0.0), ("rtol", 1.0), ("ichol_threshold", np.nan),
-    ("shading_floor", 1.0), ("white_percentile", 0.0), ("white_percentile", 101.0),
+    ("shading_floor", 1.0), ("white_percentile", 0.0), ("white_percentile", 101.0), ("solver", "ichol"),
 ])
 def test_config_validation_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
@@ -97,6 +112,7 @@ def test_config_defaults_and_json_round_trip():
     config = MattingConfig()
     assert config.epsilon == 1e-6 and config.window_radius == 1  # Levin et al.'s window, a larger epsilon
     assert config.constraint_weight is None  # hard constraints
+    assert config.solver == "direct"
     assert MattingConfig(**dataclasses.asdict(config)) == config
 
 
@@ -268,27 +284,161 @@ def test_band_is_filled_by_diffusion_not_by_the_image():
     np.testing.assert_allclose(out[known], field[known])
 
 
-def spd_system(n: int = 300, seed: int = 0) -> sp.csr_matrix:
+def test_propagation_does_not_leak_across_a_noiseless_edge_at_tiny_epsilon():
+    """Windows on a two-colour edge have a rank-1 covariance; the LDL^T whitening stays accurate.
+
+    pymatting's cofactor inverse leaked 0.07 across this edge at epsilon = 1e-8 (and divided by zero
+    at 1e-9); the leak is now of the order of epsilon.
+    """
+    image = np.empty((H, W, 3), dtype=np.float32)
+    image[:, :24] = [0.7, 0.2, 0.1]
+    image[:, 24:] = [0.1, 0.3, 0.8]
+    values = np.where(np.arange(W) < 24, 0.0, 1.0)[None, :].repeat(H, axis=0)
+    known = np.zeros((H, W), dtype=bool)
+    known[H // 2, [3, 44]] = True
+    for epsilon in (1e-8, 1e-10):
+        out = propagate(image, values, known, config=MattingConfig(epsilon=epsilon))
+        assert np.abs(out - values).max() < TOL["rank1"]
+
+
+# --------------------------------------------------------------------------------------------
+# The Laplacian and the solvers
+# --------------------------------------------------------------------------------------------
+
+def levin_laplacian(image: np.ndarray, epsilon: float, radius: int, keep: np.ndarray) -> np.ndarray:
+    """Levin et al.'s Eq. 12 summed window by window (dense, ``np.linalg.inv``): the reference."""
+    h, w, _ = image.shape
+    size = 2 * radius + 1
+    area = size * size
+    out = np.zeros((h * w, h * w))
+    index = np.arange(h * w).reshape(h, w)
+    for y in range(h - size + 1):
+        for x in range(w - size + 1):
+            if not keep[y:y + size, x:x + size].all():
+                continue
+            colours = image[y:y + size, x:x + size].reshape(area, 3)
+            centred = colours - colours.mean(axis=0)
+            inverse = np.linalg.inv(centred.T @ centred / area + epsilon / area * np.eye(3))
+            block = np.eye(area) - (1.0 + centred @ inverse @ centred.T) / area
+            pixels = index[y:y + size, x:x + size].ravel()
+            out[np.ix_(pixels, pixels)] += block
+    return out
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_laplacian_and_restricted_system_match_levins_definition(radius):
+    rng = np.random.default_rng(radius)
+    h, w = 11, 14
+    image = rng.random((h, w, 3))
+    keep = rng.random((h, w)) > 0.1
+    config = MattingConfig(window_radius=radius)
+    reference = levin_laplacian(image, config.epsilon, radius, keep)
+    laplacian = _GuidedLaplacian(image, config)
+    stencil, everything = laplacian.stencils(keep, np.ones((h, w), dtype=bool))
+    every = np.arange(h * w)
+    matrix, _ = _system(laplacian, stencil, every, np.zeros(h * w))
+    scale = np.abs(reference).max()
+    np.testing.assert_allclose(matrix.toarray(), reference, atol=TOL["laplacian"] * scale)
+    full, _ = _system(laplacian, everything, every, np.zeros(h * w))
+    np.testing.assert_allclose(full.toarray(), levin_laplacian(image, config.epsilon, radius, np.ones((h, w), bool)),
+                               atol=TOL["laplacian"] * scale)
+    # Rows of the unknowns, in elimination order, with the Dirichlet term of the known pixels.
+    unknown = keep & (rng.random((h, w)) > 0.5)
+    known = keep & ~unknown
+    values = rng.random((h * w, 2))
+    pixels = _ordered(np.flatnonzero(unknown), laplacian)
+    assert sorted(pixels) == list(np.flatnonzero(unknown))
+    diagonal = rng.random(len(pixels))
+    matrix, rhs = _system(laplacian, stencil, pixels, diagonal, known=known.ravel(), values=values)
+    given = np.flatnonzero(known)
+    np.testing.assert_allclose(matrix.toarray(), reference[np.ix_(pixels, pixels)] + np.diag(diagonal),
+                               atol=TOL["laplacian"] * scale)
+    np.testing.assert_allclose(rhs, -reference[np.ix_(pixels, given)] @ values[given], atol=TOL["laplacian"] * scale)
+
+
+def test_dissection_order_reduces_fill_below_minimum_degree():
+    h, w = 40, 60
+    image = np.random.default_rng(3).random((h, w, 3))
+    laplacian = _GuidedLaplacian(image, MattingConfig())
+    stencil = laplacian.stencils(np.ones((h, w), dtype=bool))[0]
+    every = np.arange(h * w)
+
+    def fill(order: np.ndarray, spec: str) -> int:
+        matrix, _ = _system(laplacian, stencil, order, np.full(len(order), 1e-5))
+        factor = spla.splu(matrix, permc_spec=spec, diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        return factor.L.nnz + factor.U.nnz
+
+    order = _ordered(every, laplacian)
+    assert np.array_equal(np.sort(order), every)
+    dissected = fill(order, "NATURAL")
+    assert dissected < 0.6 * fill(every, "NATURAL")  # row-major: a band of 2 rows, filled
+    assert dissected < fill(every, "MMD_AT_PLUS_A")  # SuperLU's minimum degree (measured: 302 792 < 315 804)
+
+
+def test_dissection_order_keeps_parts_that_share_no_window_apart():
+    """Two blocks 3 columns apart (no 3x3 window holds pixels of both): each is eliminated in one run."""
+    mask = np.zeros((12, 20), dtype=bool)
+    mask[:, :8] = True
+    mask[:, 11:] = True
+    pixels = np.flatnonzero(mask)
+    order = pixels[_dissection_order(pixels, 20, 2, leaf=4)]
+    left = (order % 20) < 8
+    assert np.count_nonzero(np.diff(left.astype(int))) == 1
+
+
+def spd_system(n: int = 300, seed: int = 0) -> sp.csc_matrix:
     rng = np.random.default_rng(seed)
     lower = sp.random(n, n, density=0.02, random_state=rng, format="csr")
-    return (lower @ lower.T + sp.eye(n) * 2.0).tocsr()
+    return (lower @ lower.T + sp.eye(n) * 2.0).tocsc()
 
 
-def test_block_substitution_applies_the_cholesky_inverse():
-    """With nothing discarded the incomplete factorisation is complete: M^-1 b = A^-1 b, all columns at once."""
-    matrix = spd_system()
-    rhs = np.random.default_rng(1).standard_normal((matrix.shape[0], 3))
-    apply = _preconditioner(matrix, MattingConfig(ichol_threshold=1e-300))
-    # The smallest shift (1e-4) perturbs M by 1e-4 I against eigenvalues >= 2.
-    np.testing.assert_allclose(apply(rhs), np.linalg.solve(matrix.toarray(), rhs), rtol=1e-3, atol=1e-4)
-
-
-def test_solver_on_a_system_with_known_solution():
+@pytest.mark.parametrize("solver", ["direct", "cg"])
+def test_solvers_on_a_system_with_known_solution(solver):
     matrix = spd_system()
     n = matrix.shape[0]
     solution = np.random.default_rng(2).standard_normal((n, 2))
-    found = _solve(matrix, matrix @ solution, np.zeros((n, 2)), MattingConfig(rtol=1e-10), "test")
+    config = MattingConfig(rtol=1e-10, solver=solver)
+    found, report = _solve(matrix, matrix @ solution, np.zeros((n, 2)), config, "test")
     np.testing.assert_allclose(found, solution, atol=TOL["solver"])
+    assert isinstance(report, SolveReport) and report.solver == solver and report.what == "test"
+    assert report.converged and report.residual <= 1e-10
+    assert (report.unknowns, report.channels) == (n, 2) and report.seconds >= 0
+    assert report.n_iter >= (1 if solver == "cg" else 0)
+    assert json.loads(json.dumps(report.to_dict()))["converged"] is True
+
+
+def test_solver_that_runs_out_of_iterations_reports_and_returns_the_last_iterate(caplog):
+    matrix = spd_system()
+    rhs = np.ones((matrix.shape[0], 1))
+    config = MattingConfig(rtol=1e-14, max_iter=1, ichol_threshold=0.5, solver="cg")
+    with caplog.at_level("WARNING", logger="mvintrinsic.matting"):
+        found, report = _solve(matrix, rhs, np.zeros_like(rhs), config, "tiny system")
+    assert np.isfinite(found).all()
+    residual = np.linalg.norm(matrix @ found - rhs) / np.linalg.norm(rhs)
+    assert residual < 1  # one step made progress
+    assert not report.converged and report.n_iter == 1
+    assert report.residual == pytest.approx(residual)
+    assert any("tiny system" in r.getMessage() and "1 conjugate-gradient iterations" in r.getMessage()
+               for r in caplog.records)
+
+
+def test_matting_compiles_nothing_and_leaves_the_process_alone():
+    """No JIT (numba, pymatting) on first use, and no process-wide state changed (sys.stdout)."""
+    code = (
+        "import sys, json, numpy as np\n"
+        "stdout = sys.stdout\n"
+        "from mvintrinsic.matting import propagate, sun_visibility_matting\n"
+        "rng = np.random.default_rng(0)\n"
+        "image = rng.random((20, 30, 3))\n"
+        "known = np.zeros((20, 30), bool); known[::4, ::4] = True\n"
+        "propagate(image, rng.random((20, 30)), known)\n"
+        "labels = np.where(np.arange(30) < 15, 0, 255).astype(np.uint8)[None].repeat(20, 0)\n"
+        "sun_visibility_matting(image, labels)\n"
+        "print(json.dumps({'stdout': sys.stdout is stdout, "
+        "'jit': sorted({m.split('.')[0] for m in sys.modules} & {'numba', 'llvmlite', 'pymatting'})}))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=120)
+    assert json.loads(done.stdout.strip().splitlines()[-1]) == {"stdout": True, "jit": []}
 
 
 # --------------------------------------------------------------------------------------------
@@ -360,12 +510,45 @@ def test_intrinsic_layers_floor_tiny_shading_and_check_inputs():
         intrinsic_layers(view, dataclasses.replace(quantities, stem="w"), labels, SUN)
 
 
-def test_solver_that_runs_out_of_iterations_logs_and_returns_the_last_iterate(caplog):
-    matrix = spd_system()
-    rhs = np.ones((matrix.shape[0], 1))
-    config = MattingConfig(rtol=1e-14, max_iter=1, ichol_threshold=0.5)
+def test_intrinsic_layers_result_reports_every_solve():
+    view, quantities, labels, clusters = synthetic_view()
+    config = MattingConfig(trimap_radius=9)
+    result = intrinsic_layers_result(view, quantities, labels, SUN, clusters=clusters, config=config)
+    assert isinstance(result, MattingResult) and result.converged
+    plain = intrinsic_layers(view, quantities, labels, SUN, clusters=clusters, config=config)
+    np.testing.assert_array_equal(result.layers.reflectance, plain.reflectance)
+    np.testing.assert_array_equal(result.layers.visibility, plain.visibility)
+    whats = [report.what for report in result.solves]
+    assert whats == ["sun visibility matting 'v'", "shading propagation 'v'", "shading propagation 'v' (band diffusion)"]
+    channels = [report.channels for report in result.solves]
+    assert channels == [1, 7, 7]  # v_sun; S_sky, S_ind and the cosine together
+    for report in result.solves:
+        assert report.solver == "direct" and report.converged and report.residual <= config.rtol
+        assert 0 < report.unknowns < H * W
+    # The visibility unknowns are the trimap band and cluster boundaries on the valid pixels.
+    assert result.solves[0].unknowns <= quantities.valid.sum()
+    assert set(result.timings) == {"laplacian", "visibility", "propagation"}
+
+
+def test_direct_and_conjugate_gradient_solvers_agree_on_the_layers():
+    view, quantities, labels, clusters = synthetic_view()
+    layers = {solver: intrinsic_layers(view, quantities, labels, SUN, clusters=clusters,
+                                       config=MattingConfig(trimap_radius=9, solver=solver))
+              for solver in ("direct", "cg")}
+    valid = quantities.valid
+    for name in ("reflectance", "sky_shading", "indirect_shading", "sun_shading", "visibility"):
+        a, b = getattr(layers["direct"], name)[valid], getattr(layers["cg"], name)[valid]
+        assert np.abs(a - b).max() <= TOL["solvers"] * np.abs(a).max(), name
+
+
+def test_solve_failure_is_reported_not_only_logged(caplog):
+    """A cg solve stopped early by max_iter shows in the layers' report, with its residual."""
+    view, quantities, labels, clusters = synthetic_view()
+    config = MattingConfig(trimap_radius=9, solver="cg", max_iter=1, rtol=1e-12, ichol_threshold=0.5)
     with caplog.at_level("WARNING", logger="mvintrinsic.matting"):
-        found = _solve(matrix, rhs, np.zeros_like(rhs), config, "tiny system")
-    assert np.isfinite(found).all()
-    assert np.linalg.norm(matrix @ found - rhs) < np.linalg.norm(rhs)  # one step made progress
-    assert any("tiny system" in r.getMessage() and "after 1 iterations" in r.getMessage() for r in caplog.records)
+        result = intrinsic_layers_result(view, quantities, labels, SUN, clusters=clusters, config=config)
+    assert not result.converged
+    failed = [report for report in result.solves if not report.converged]
+    assert failed and all(report.n_iter == 1 and report.residual > 1e-12 for report in failed)
+    assert len([r for r in caplog.records if "without reaching rtol" in r.getMessage()]) == len(failed)
+    assert np.isfinite(result.layers.reflectance).all()

@@ -109,6 +109,7 @@ __all__ = [
     "edge_scale",
     "edge_votes",
     "grid_cut",
+    "potts_weights",
     "label_shadows_multiview",
     "palette_visibility",
     "proxy_prior",
@@ -277,12 +278,19 @@ class ReflectancePalette:
 
     def log_density_of_bins(self, bins: np.ndarray, *, floor: float = 1e-7) -> np.ndarray:
         """``log(p + floor)`` of bin indices ``(..., 3)`` (as :func:`visibility_curve_bins` gives them)."""
-        index = np.asarray(bins, dtype=np.int64) - self.origin
-        shape = np.array(self.density.shape)
-        inside = np.all((index >= 0) & (index < shape), axis=-1)
-        flat = (index[..., 0] * shape[1] + index[..., 1]) * shape[2] + index[..., 2]
-        table = np.log(self.density + floor).ravel()
-        return np.where(inside, table[np.where(inside, flat, 0)], np.log(floor))
+        # A table padded with one cell of log(floor) on every side: an index clipped into the padded
+        # range reads log(floor) when it falls outside the histogram, with no test per axis.
+        table = np.pad(np.log(self.density + floor), 1, constant_values=np.log(floor))
+        shape = table.shape
+        bins = np.asarray(bins)
+        if not np.issubdtype(bins.dtype, np.integer):
+            bins = bins.astype(np.int64)
+        flat = np.zeros(bins.shape[:-1], dtype=np.int64)
+        for axis in range(3):
+            index = np.clip(bins[..., axis] - (self.origin[axis] - 1), 0, shape[axis] - 1)
+            flat *= shape[axis]
+            flat += index
+        return table.ravel()[flat]
 
     def __repr__(self) -> str:
         return f"ReflectancePalette({'x'.join(map(str, self.density.shape))} bins of {self.bins.tolist()})"
@@ -370,8 +378,9 @@ def visibility_curve_bins(log_image: np.ndarray, env: np.ndarray, sun: np.ndarra
     """Palette bins of ``a - log(S_env + v S_sun)`` for ``levels`` visibilities ``v`` in [0, 1].
 
     The part of :func:`palette_visibility` that does not depend on the palette, computed once per
-    view and reused in every palette round. Returns ``(N, levels, 3)`` int32 bin indices (bin
-    ``k`` spans ``[k, k + 1) * bins`` along each :data:`LOG_CHROMA` axis).
+    view and reused in every palette round. Returns ``(N, levels, 3)`` bin indices (bin ``k`` spans
+    ``[k, k + 1) * bins`` along each :data:`LOG_CHROMA` axis): int16 when every index fits (log
+    values within 32767 bin widths of 0, which photographs are by far), else int32.
     """
     a = np.asarray(log_image, dtype=np.float64).reshape(-1, 3)
     e = np.asarray(env, dtype=np.float64).reshape(-1, 3)
@@ -381,6 +390,8 @@ def visibility_curve_bins(log_image: np.ndarray, env: np.ndarray, sun: np.ndarra
     out = np.empty((len(a), int(levels), 3), dtype=np.int32)
     for i, v in enumerate(np.linspace(0.0, 1.0, int(levels))):
         out[:, i] = np.floor((projected - np.log(e + v * s) @ LOG_CHROMA.T) / width)
+    if len(out) and np.abs(out).max() < np.iinfo(np.int16).max:  # half the memory (the common case)
+        return out.astype(np.int16)
     return out
 
 
@@ -452,28 +463,43 @@ def edge_votes(log_image: np.ndarray, shadow_ratio: np.ndarray, valid: np.ndarra
         Largest margin (>= 0, at most ``material_cost``) by which "``p`` lit, partner in shadow"
         (resp. the reverse) beats the other explanations of one jump; 0 off ``valid``.
     """
-    a = np.asarray(log_image, dtype=np.float64)
-    lam = np.asarray(shadow_ratio, dtype=np.float64)
+    a = np.asarray(log_image, dtype=np.float32)
+    half = 0.5 * np.asarray(shadow_ratio, dtype=np.float32)
     valid = np.asarray(valid, dtype=bool)
     h, w = valid.shape
-    if a.shape != (h, w, 3) or lam.shape != (h, w, 3):
-        raise ValueError(f"log_image and shadow_ratio must have shape {(h, w, 3)}, got {a.shape} and {lam.shape}")
-    scale = 1.0 / (2.0 * sigma * sigma)
-    lit = np.zeros((h, w))
-    shadow = np.zeros((h, w))
-    for dy, dx in (edge_offsets() if offsets is None else offsets):
-        ps, qs = _overlap(h, w, int(dy), int(dx))
+    if a.shape != (h, w, 3) or half.shape != (h, w, 3):
+        raise ValueError(f"log_image and shadow_ratio must have shape {(h, w, 3)}, got {a.shape} and "
+                         f"{np.shape(shadow_ratio)}")
+    scale = np.float32(1.0 / (2.0 * sigma * sigma))
+    cap = np.float32(material_cost)
+    lit = np.zeros((h, w), np.float32)
+    shadow = np.zeros((h, w), np.float32)
+    offsets = [(int(dy), int(dx)) for dy, dx in (edge_offsets() if offsets is None else offsets)]
+    listed = set(offsets)
+    for dy, dx in offsets:
+        mirrored = (-dy, -dx) in listed
+        if mirrored and (dy, dx) < (-dy, -dx):
+            continue  # the pair (p, p + d) is scored once, from the offset's mirror image
+        ps, qs = _overlap(h, w, dy, dx)
         both = valid[ps] & valid[qs]
         jump = a[ps] - a[qs]
-        ratio = 0.5 * (lam[ps] + lam[qs])
-        c_lit = scale * np.einsum("ijk,ijk->ij", jump - ratio, jump - ratio)      # p lit, q shadow
-        c_shadow = scale * np.einsum("ijk,ijk->ij", jump + ratio, jump + ratio)   # p shadow, q lit
-        c_same = scale * np.einsum("ijk,ijk->ij", jump, jump)                     # same light
-        alternative = np.minimum(np.minimum(c_shadow, c_same), material_cost)
-        np.maximum(lit[ps], np.where(both, alternative - c_lit, 0.0), out=lit[ps])
-        alternative = np.minimum(np.minimum(c_lit, c_same), material_cost)
-        np.maximum(shadow[ps], np.where(both, alternative - c_shadow, 0.0), out=shadow[ps])
-    return lit, shadow
+        ratio = half[ps] + half[qs]
+        # With j the jump and r the ratio: |j - r|^2 (p lit, q shadow), |j + r|^2 (p shadow, q lit)
+        # and |j|^2 (same light) differ by 4 j.r and 2 j.r +- r.r: three dot products per pair.
+        jj = np.einsum("ijk,ijk->ij", jump, jump)
+        jr = np.einsum("ijk,ijk->ij", jump, ratio)
+        rr = np.einsum("ijk,ijk->ij", ratio, ratio)
+        c_lit = scale * (jj - 2 * jr + rr)
+        c_shadow = c_lit + 4 * scale * jr
+        c_same = scale * jj
+        lit_margin = np.where(both, np.minimum(np.minimum(c_shadow, c_same), cap) - c_lit, 0)
+        shadow_margin = np.where(both, np.minimum(np.minimum(c_lit, c_same), cap) - c_shadow, 0)
+        np.maximum(lit[ps], lit_margin, out=lit[ps])
+        np.maximum(shadow[ps], shadow_margin, out=shadow[ps])
+        if mirrored:  # the partner's votes of the same pair: its "lit" is p's "shadow" and back
+            np.maximum(lit[qs], shadow_margin, out=lit[qs])
+            np.maximum(shadow[qs], lit_margin, out=shadow[qs])
+    return lit.astype(np.float64), shadow.astype(np.float64)
 
 
 def albedo_term(r0: np.ndarray, r1: np.ndarray, *, albedo_max: float = 1.0) -> np.ndarray:
@@ -501,8 +527,31 @@ def proxy_prior(visibility: np.ndarray, *, lit: float = 0.05, shadow: float = 0.
 _NEIGHBOURS = ((0, 1), (1, 0), (1, 1), (1, -1))
 
 
+def potts_weights(guide: np.ndarray, valid: np.ndarray, *, smoothness: float = 1.0, contrast: float = 0.3
+                  ) -> tuple[np.ndarray, ...]:
+    """The contrast-sensitive Potts weights of :func:`grid_cut`, one ``(H, W)`` float32 array per
+    neighbour offset of ``_NEIGHBOURS`` (the weight of the edge from ``p`` to ``p + offset``, 0 where
+    either end is off ``valid``). They depend on the view only: computed once, reused every round."""
+    valid = np.asarray(valid, dtype=bool)
+    h, w = valid.shape
+    g = np.asarray(guide, dtype=np.float32)
+    if g.ndim == 2:
+        g = g[..., None]
+    scale = np.float32(1.0 / (2.0 * contrast * contrast))
+    out = []
+    for dy, dx in _NEIGHBOURS:
+        ps, qs = _overlap(h, w, dy, dx)
+        weight = np.zeros((h, w), np.float32)
+        diff = g[ps] - g[qs]
+        keep = np.exp(-scale * np.einsum("ijk,ijk->ij", diff, diff))
+        weight[ps] = np.where(valid[ps] & valid[qs], np.float32(smoothness / np.hypot(dy, dx)) * keep, 0)
+        out.append(weight)
+    return tuple(out)
+
+
 def grid_cut(cost_shadow: np.ndarray, cost_lit: np.ndarray, guide: np.ndarray, valid: np.ndarray, *,
-             smoothness: float = 1.0, contrast: float = 0.3) -> np.ndarray:
+             smoothness: float = 1.0, contrast: float = 0.3, weights: tuple[np.ndarray, ...] | None = None
+             ) -> np.ndarray:
     """Exact binary labelling of a pixel grid with contrast-sensitive Potts smoothing.
 
     Minimises ``sum_p c_p(x_p) + sum_{p~q} w_pq [x_p != x_q]`` over the 8-neighbourhood, with
@@ -518,6 +567,9 @@ def grid_cut(cost_shadow: np.ndarray, cost_lit: np.ndarray, guide: np.ndarray, v
         The image the Potts weights follow (here the log image).
     valid : (H, W) bool
     smoothness, contrast : float, optional
+    weights : tuple of (H, W) arrays, optional
+        The Potts weights already computed (:func:`potts_weights` of the same guide, valid,
+        smoothness and contrast); ``guide``, ``smoothness`` and ``contrast`` are then not read.
 
     Returns
     -------
@@ -528,18 +580,11 @@ def grid_cut(cost_shadow: np.ndarray, cost_lit: np.ndarray, guide: np.ndarray, v
 
     valid = np.asarray(valid, dtype=bool)
     h, w = valid.shape
-    g = np.asarray(guide, dtype=np.float64)
-    if g.ndim == 2:
-        g = g[..., None]
+    if weights is None:
+        weights = potts_weights(guide, valid, smoothness=smoothness, contrast=contrast)
     graph = maxflow.Graph[float]()
     nodes = graph.add_grid_nodes((h, w))
-    scale = 1.0 / (2.0 * contrast * contrast)
-    for dy, dx in _NEIGHBOURS:
-        ps, qs = _overlap(h, w, dy, dx)
-        weight = np.zeros((h, w))
-        diff = g[ps] - g[qs]
-        keep = np.exp(-scale * np.einsum("ijk,ijk->ij", diff, diff))
-        weight[ps] = np.where(valid[ps] & valid[qs], smoothness * keep / np.hypot(dy, dx), 0.0)
+    for (dy, dx), weight in zip(_NEIGHBOURS, weights, strict=True):
         structure = np.zeros((3, 3))
         structure[1 + dy, 1 + dx] = 1.0
         graph.add_grid_edges(nodes, weights=weight, structure=structure, symmetric=True)
@@ -744,6 +789,8 @@ def label_shadows_multiview(
     if not use_views:
         correspondences = None
 
+    potts: dict[str, tuple[np.ndarray, ...]] = {}
+
     def label(scores: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
         start = time.perf_counter()
         if correspondences is not None:
@@ -753,8 +800,9 @@ def label_shadows_multiview(
         lit = {}
         for stem in stems:
             e, s = evidence[stem], scores[stem]
-            lit[stem] = grid_cut(np.maximum(s, 0.0), np.maximum(-s, 0.0), e.a, e.valid,
-                                 smoothness=config.smoothness, contrast=config.contrast)
+            if stem not in potts:
+                potts[stem] = potts_weights(e.a, e.valid, smoothness=config.smoothness, contrast=config.contrast)
+            lit[stem] = grid_cut(np.maximum(s, 0.0), np.maximum(-s, 0.0), e.a, e.valid, weights=potts[stem])
         timings["graph_cut"] += time.perf_counter() - start
         return lit, scores
 

@@ -530,6 +530,18 @@ def test_intrinsic_layers_result_reports_every_solve():
     assert set(result.timings) == {"laplacian", "visibility", "propagation"}
 
 
+def test_one_or_two_threads_give_the_same_layers():
+    """MattingConfig.threads: the matte and the propagation solved concurrently or in turn."""
+    view, quantities, labels, clusters = synthetic_view()
+    results = [intrinsic_layers_result(view, quantities, labels, SUN, clusters=clusters,
+                                       config=MattingConfig(trimap_radius=9, threads=threads)) for threads in (1, 2)]
+    for name in ("reflectance", "sky_shading", "indirect_shading", "sun_shading", "visibility"):
+        np.testing.assert_array_equal(getattr(results[0].layers, name), getattr(results[1].layers, name))
+    assert [r.what for r in results[0].solves] == [r.what for r in results[1].solves]
+    with pytest.raises(ValueError, match="threads"):
+        MattingConfig(threads=0)
+
+
 def test_direct_and_conjugate_gradient_solvers_agree_on_the_layers():
     view, quantities, labels, clusters = synthetic_view()
     layers = {solver: intrinsic_layers(view, quantities, labels, SUN, clusters=clusters,

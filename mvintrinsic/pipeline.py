@@ -98,6 +98,11 @@ class Config:
         layers carried back to full size (beyond the paper,
         :mod:`mvintrinsic.resolution`: bilinear shading, ``v_sun`` guided by the photo, then
         ``R = I / S`` at full size). 1 (default) decomposes at full size.
+    max_side : int or None
+        Working resolution as a size: the views are decomposed with their longer side at most this
+        many pixels (the smaller of this and ``scale``; never below :data:`MIN_WORKING_SIDE`), so
+        that the cost per view is bounded whatever the photos' size. None (default): ``scale``
+        alone.
     steps : {2, 3, 4}
         Last step run: 2 gives the Step-2 layers (proxy visibility), 3 the Step-3 layers, 4
         (default) the Step-4 layers.
@@ -120,6 +125,7 @@ class Config:
     matting: MattingConfig | None = field(default_factory=MattingConfig)
     env_refine: EnvRefineConfig = field(default_factory=EnvRefineConfig)
     scale: float = 1.0
+    max_side: int | None = None
     steps: int = 4
     allow_missing_sun: bool = False
     seed: int = 0
@@ -137,6 +143,9 @@ class Config:
                 raise TypeError(f"{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
         if isinstance(self.scale, bool) or not isinstance(self.scale, (int, float)) or not 0.0 < self.scale <= 1.0:
             raise ValueError(f"scale must be a number in (0, 1], got {self.scale!r}")
+        if self.max_side is not None and (isinstance(self.max_side, bool) or not isinstance(self.max_side, int)
+                                          or self.max_side < 1):
+            raise ValueError(f"max_side must be a positive integer (pixels) or None, got {self.max_side!r}")
         if self.steps not in (2, 3, 4) or isinstance(self.steps, bool):
             raise ValueError(f"steps must be 2, 3 or 4, got {self.steps!r}")
         if not isinstance(self.allow_missing_sun, bool):
@@ -151,11 +160,15 @@ class Config:
         Parameters
         ----------
         name : {"fast", "balanced", "paper", "best"}
-            * ``"fast"``: working resolution 1/2 (:mod:`mvintrinsic.resolution`), 32 Step-1 rays
-              on a 0.2 m grid, one labelling pass; the multi-view labels, matting and Step 4 as by
-              default. (Skipping the matting, ``matting=None``, cost more accuracy than halving
-              the resolution: reflectance LMSE 0.072 against 0.045 on demo_480, ``docs/presets.md``.)
-            * ``"balanced"``: the defaults, ``Config()``.
+            * ``"fast"``: a quick look. The views decomposed with their longer side at
+              :data:`FAST_SIDE` pixels (:mod:`mvintrinsic.resolution`), 16 Step-1 rays on a
+              0.2 m grid, normals smoothed over 0.2 m, one labelling pass, no matting (``v_sun``
+              from the labels, :func:`label_layers`). Measured on 6 views of timing_1000
+              (1000x750, ``docs/presets.md``): 2.3 s per view, reflectance LMSE 0.059 (with the
+              matting 3.5 s and 0.049).
+            * ``"balanced"``: the defaults with the longer side at :data:`BALANCED_SIDE` pixels:
+              16 views at 1000x750 in 158 s end to end and 3.2 GB (``docs/presets.md``); photos
+              of at most that size are decomposed as by ``Config()``.
             * ``"paper"``: the paper's method as published (Duchêne et al. 2015): the per-view
               colour segmentation and MRF of Sec. 6.1, matting (Sec. 6.2), Step 4's ``S_env``
               offsets (Sec. 7), the proxy's own normals, the Preetham sky, direct sun assumed,
@@ -178,11 +191,11 @@ class Config:
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {name!r}")
         base = cls()
         if name == "balanced":
-            return base
+            return dataclasses.replace(base, max_side=BALANCED_SIDE)
         if name == "fast":
             return dataclasses.replace(
-                base, scale=0.5,
-                step1=dataclasses.replace(base.step1, n_rays=32, subsample=0.2),
+                base, max_side=FAST_SIDE, matting=None,
+                step1=dataclasses.replace(base.step1, n_rays=16, subsample=0.2, normal_smoothing=0.2),
                 multiview=dataclasses.replace(base.multiview, iterations=1))
         if name == "paper":
             return dataclasses.replace(
@@ -209,6 +222,9 @@ class Config:
 
 #: The names :meth:`Config.preset` knows, from the fastest to the most work.
 PRESETS = ("fast", "balanced", "paper", "best")
+#: Longer side (pixels) of the working views of the "fast" and "balanced" presets.
+FAST_SIDE = 400
+BALANCED_SIDE = 640
 
 _NESTED = {"step1": Step1Config, "exposure": ExposureConfig, "sun": SunConfig, "sky": SkyConfig,
            "segmentation": SegmentationConfig,
@@ -552,10 +568,12 @@ def step4(scene: Scene, quantities: Mapping[str, PixelQuantities], layers: Mappi
 MIN_WORKING_SIDE = 400
 
 
-def working_scale(scene: Scene, scale: float) -> float:
-    """The scale the views are decomposed at: ``scale``, but no smaller than :data:`MIN_WORKING_SIDE` allows."""
+def working_scale(scene: Scene, scale: float, max_side: int | None = None) -> float:
+    """The scale the views are decomposed at: ``scale``, or less so that the longest side is at most
+    ``max_side`` pixels, but never smaller than :data:`MIN_WORKING_SIDE` allows."""
     longest = max(max(v.shape) for v in scene.views)
-    return max(float(scale), min(1.0, MIN_WORKING_SIDE / longest))
+    wanted = float(scale) if max_side is None else min(float(scale), max_side / longest)
+    return min(1.0, max(wanted, min(1.0, MIN_WORKING_SIDE / longest)))
 
 
 def _sun_pairs(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config, progress: bool,
@@ -735,7 +753,7 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
 
     tracer = tracer if tracer is not None else Tracer(scene.proxy)
     full = scene  # the photos' size; the working scene below when the working scale is below 1
-    scale = working_scale(scene, config.scale)
+    scale = working_scale(scene, config.scale, config.max_side)
     if scale < 1.0:
         start = time.perf_counter()
         scene = downscale_scene(scene, scale)

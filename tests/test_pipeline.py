@@ -217,11 +217,13 @@ def test_sunny_demo_records_direct_sun_and_step4(demo_result):
 
 
 def test_presets_are_configs_and_unknown_names_are_refused():
-    assert Config.preset("balanced") == Config()
+    balanced = Config.preset("balanced")
+    assert balanced.max_side == pipeline.BALANCED_SIDE and replace(balanced, max_side=None) == Config()
     fast, paper = Config.preset("fast"), Config.preset("paper")
-    assert fast.scale == 0.5 and fast.step1.n_rays < Config().step1.n_rays and fast.matting is not None
+    assert fast.max_side == pipeline.FAST_SIDE and fast.step1.n_rays < Config().step1.n_rays and fast.matting is None
     assert paper.shadow.method == "paper" and paper.env_refine.method == "paper"
     assert paper.exposure.method == "none" and paper.step1.normal_smoothing == 0.0
+    assert paper.step1.sky.model == "preetham" and paper.sun.direct_sun == "always" and paper.max_side is None
     assert Config.preset("best").step1.n_rays > Config().step1.n_rays
     assert Config.from_dict(fast.to_dict()) == fast
     with pytest.raises(ValueError, match="preset must be one of"):
@@ -230,11 +232,18 @@ def test_presets_are_configs_and_unknown_names_are_refused():
         Config(scale=0.0)
     with pytest.raises(ValueError, match="scale"):
         Config(scale=1.5)
+    with pytest.raises(ValueError, match="max_side"):
+        Config(max_side=0)
 
 
 def test_working_scale_and_no_matting_keep_layers_consistent(demo_scene, monkeypatch):
     scene = Scene(demo_scene.views[:2], demo_scene.proxy, demo_scene.sun, demo_scene.up)
     assert pipeline.working_scale(scene, 0.5) == 1.0  # 240x180 views stay whole (MIN_WORKING_SIDE)
+    assert pipeline.working_scale(scene, 1.0, 640) == 1.0  # smaller than max_side: whole
+    big = Scene(tuple(View(v.stem, np.zeros((750, 1000, 3), np.float32), v.camera.scaled(1000, 750))
+                      for v in scene.views), scene.proxy, scene.sun, scene.up)
+    assert pipeline.working_scale(big, 1.0, 640) == 0.64 and pipeline.working_scale(big, 0.5, 640) == 0.5
+    assert pipeline.working_scale(big, 1.0, 100) == 0.4  # MIN_WORKING_SIDE / 1000
     monkeypatch.setattr(pipeline, "MIN_WORKING_SIDE", 100)
     assert pipeline.working_scale(scene, 0.5) == 0.5
     for config in (Config(scale=0.5, steps=3), Config(matting=None, steps=3)):

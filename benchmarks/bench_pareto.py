@@ -3,6 +3,7 @@
     python benchmarks/bench_pareto.py --data DIR --scene NAME [--scene NAME ...] [--preset P ...]
                                       [--out benchmarks/results/pareto.json] [--figure benchmarks/results/pareto.png]
     python benchmarks/bench_pareto.py --scaling --data DIR --scene NAME [--out ...]
+    python benchmarks/bench_pareto.py --end-to-end PRESET --data DIR --scene NAME [--out ...]
     python benchmarks/bench_pareto.py --smoke
 
 Per scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` the embedded demo) and preset
@@ -17,8 +18,10 @@ same scenes as a reference point. The figure plots seconds per view against each
 draws the seconds per stage as stacked bars.
 
 ``--scaling`` measures how the cost grows with the default preset: seconds per view at working
-scales 0.25, 0.5, 0.75 and 1 of the first scene (pixels per view) and for its first 2, 4, ...
-views, with the log-log slope fitted to each. ``--smoke`` runs "fast" and "balanced" on the demo.
+scales 0.25, 0.5, 0.75 and 1 of the first scene's first four views (pixels per view) and for its
+first 2, 4, 8, ... views at working scale 0.5, with the log-log slope fitted to each. ``--end-to-end PRESET`` times
+``mvintrinsic decompose --preset PRESET`` on the first scene in a fresh process (loading and writing
+included) and records its peak resident memory. ``--smoke`` runs "fast" and "balanced" on the demo.
 """
 
 from __future__ import annotations
@@ -87,10 +90,12 @@ def score(folder: Path, scene, result, work: Path) -> dict:
     return {key: mean[key] for key in ("lmse_reflectance", "lmse_shading", "ber")}
 
 
-def bench_scene(folder: Path, presets: list[str], work: Path) -> dict:
+def bench_scene(folder: Path, presets: list[str], work: Path, *, max_views: int | None = None) -> dict:
     from run_retinex import retinex_decomposition
 
     scene = load_scene(folder)
+    if max_views is not None:
+        scene = dataclasses.replace(scene, views=scene.views[:max_views])
     views = len(scene.views)
     h, w = scene.views[0].shape
     entry = {"size": f"{w}x{h}", "views": views, "presets": {}}
@@ -121,14 +126,21 @@ def loglog_slope(x: list[float], y: list[float]) -> float:
     return float(np.polyfit(np.log(x), np.log(y), 1)[0])
 
 
-def bench_scaling(folder: Path) -> dict:
-    """Seconds per view of the default preset against pixels per view and against the number of views."""
-    scene = load_scene(folder)
-    out: dict = {"pixels": [], "views": []}
-    for scale in (0.25, 0.5, 0.75, 1.0):
-        from mvintrinsic.resolution import downscale_scene
+def bench_scaling(folder: Path, *, views: int = 4, views_scale: float = 0.5) -> dict:
+    """Seconds per view of the default preset against pixels per view and against the number of views.
 
-        small = downscale_scene(scene, scale)
+    The pixel sweep decomposes the first ``views`` views at working scales 0.25, 0.5, 0.75 and 1;
+    the view sweep decomposes the first 2, 4, 8, ... views at working scale ``views_scale`` (the
+    work per view is the same at every count, so the scale only shortens the run).
+    """
+    from mvintrinsic.resolution import downscale_scene
+
+    scene = load_scene(folder)
+    out: dict = {"pixels": [], "views": [], "pixel_sweep_views": min(views, len(scene.views)),
+                 "view_sweep_scale": views_scale}
+    first = dataclasses.replace(scene, views=scene.views[:views])
+    for scale in (0.25, 0.5, 0.75, 1.0):
+        small = downscale_scene(first, scale) if scale != 1.0 else first
         start = time.perf_counter()
         decompose(small)
         seconds = (time.perf_counter() - start) / len(small.views)
@@ -136,17 +148,43 @@ def bench_scaling(folder: Path) -> dict:
         out["pixels"].append({"scale": scale, "pixels_per_view": h * w, "seconds_per_view": seconds})
         print(f"{folder.name} scale {scale}: {w}x{h} {seconds:.2f} s/view", flush=True)
     n = len(scene.views)
-    for count in sorted({k for k in (2, 4, 6, 8, 16, n) if k <= n}):
-        subset = dataclasses.replace(scene, views=scene.views[:count])
+    small = downscale_scene(scene, views_scale)
+    for count in sorted({k for k in (2, 4, 8, 16, n) if k <= n}):
+        subset = dataclasses.replace(small, views=small.views[:count])
         start = time.perf_counter()
         decompose(subset)
         seconds = time.perf_counter() - start
         out["views"].append({"views": count, "seconds": seconds, "seconds_per_view": seconds / count})
-        print(f"{folder.name} {count} views: {seconds:.1f} s", flush=True)
+        print(f"{folder.name} {count} views at scale {views_scale}: {seconds:.1f} s", flush=True)
     out["slope_seconds_per_view_vs_pixels"] = loglog_slope([p["pixels_per_view"] for p in out["pixels"]],
                                                            [p["seconds_per_view"] for p in out["pixels"]])
     out["slope_seconds_vs_views"] = loglog_slope([p["views"] for p in out["views"]], [p["seconds"] for p in out["views"]])
+    print(f"log-log slopes: seconds per view against pixels {out['slope_seconds_per_view_vs_pixels']:.2f}, "
+          f"seconds against views {out['slope_seconds_vs_views']:.2f}", flush=True)
     return out
+
+
+def bench_end_to_end(folder: Path, preset: str, work: Path) -> dict:
+    """Wall seconds and peak memory of ``mvintrinsic decompose SCENE OUT --preset P`` in a fresh process.
+
+    Loading, the decomposition and writing the result folder are all counted; the peak is the
+    child's maximum resident set (``getrusage(RUSAGE_CHILDREN).ru_maxrss``, the figure
+    ``/usr/bin/time -v`` reports).
+    """
+    import resource
+    import subprocess
+
+    cmd = [sys.executable, "-m", "mvintrinsic", "decompose", str(folder), str(work / "result"), "--preset", preset]
+    start = time.perf_counter()
+    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL)
+    wall = time.perf_counter() - start
+    peak_gb = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 2**20  # kB on Linux
+    views = len(load_scene(folder).views)
+    row = {"preset": preset, "views": views, "wall_s": wall, "peak_rss_gb": peak_gb,
+           "command": f"mvintrinsic decompose {folder.name} OUT --preset {preset}"}
+    print(f"{folder.name}: mvintrinsic decompose --preset {preset}, {views} views: {wall:.1f} s end to end, "
+          f"peak {peak_gb:.2f} GB", flush=True)
+    return row
 
 
 def pareto_front(points: list[tuple[float, float]]) -> list[int]:
@@ -213,6 +251,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--preset", action="append", choices=PRESETS, default=None, help="default: all")
     parser.add_argument("--smoke", action="store_true", help="'fast' and 'balanced' on the demo")
     parser.add_argument("--scaling", action="store_true", help="cost against pixels and views (first scene)")
+    parser.add_argument("--end-to-end", choices=PRESETS, default=None,
+                        help="wall time and peak memory of the CLI with this preset (first scene)")
+    parser.add_argument("--views", type=int, default=None, help="only the first N views of each scene")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG chart")
     args = parser.parse_args(argv)
@@ -230,17 +271,22 @@ def main(argv: list[str] | None = None) -> int:
         if not (folder / "scene.json").is_file():
             parser.error(f"--scene {name}: no scene.json in {folder}")
         folders[name] = folder
-    if args.scaling:
+    if args.end_to_end:
+        report["benchmark"] = "end_to_end"
+        name = names[0]
+        with tempfile.TemporaryDirectory() as tmp:
+            report["scenes"][name] = bench_end_to_end(folders[name], args.end_to_end, Path(tmp))
+    elif args.scaling:
         name = names[0]
         report["scenes"][name] = bench_scaling(folders[name])
     else:
         for name, folder in folders.items():
             with tempfile.TemporaryDirectory() as tmp:
-                report["scenes"][name] = bench_scene(folder, presets, Path(tmp))
+                report["scenes"][name] = bench_scene(folder, presets, Path(tmp), max_views=args.views)
     if args.out:
         write_json(args.out, report)
         print(f"wrote {args.out}")
-    if args.figure and not args.scaling:
+    if args.figure and not (args.scaling or args.end_to_end):
         save_figure(report, args.figure)
         print(f"wrote {args.figure}")
     return 0

@@ -1,0 +1,141 @@
+"""The speed/accuracy and stability benchmarks (issue 17): their helpers, and their smoke runs.
+
+The studies themselves (``benchmarks/bench_pareto.py``, ``benchmarks/bench_stability.py``) take
+hours on rendered scenes; here their building blocks are checked against their definitions, and
+each benchmark's ``--smoke`` mode runs on the embedded demo so that they cannot rot unnoticed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import mvintrinsic  # noqa: F401  (loads libusb before open3d)
+from mvintrinsic import Proxy, Sun
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+sys.path.insert(0, str(BENCHMARKS))
+
+import bench_pareto  # noqa: E402
+import bench_stability  # noqa: E402
+
+
+def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():
+    points = [(1.0, 5.0), (2.0, 3.0), (3.0, 4.0), (4.0, 1.0), (2.0, 3.0)]
+    # (3, 4) is beaten by (2, 3); the two equal points do not beat each other
+    assert bench_pareto.pareto_front(points) == [0, 1, 3, 4]
+
+
+def test_loglog_slope_recovers_a_power_law():
+    x = [1e4, 4e4, 1.6e5, 6.4e5]
+    assert bench_pareto.loglog_slope(x, [3.0 * v**0.8 for v in x]) == pytest.approx(0.8, abs=1e-12)
+
+
+def test_stage_seconds_sums_step1_parts_per_view():
+    timings = {"step1.rays": 4.0, "step1.sky": 2.0, "matting": 3.0, "pixels": 0.0}
+    assert bench_pareto.stage_seconds(timings, views=2) == {"step1": 3.0, "matting": 1.5}
+
+
+def test_spread_indices_take_the_ends_and_spread_evenly():
+    assert bench_stability.spread_indices(16, 4) == [0, 5, 10, 15]
+    assert bench_stability.spread_indices(16, 2) == [0, 15]
+    assert bench_stability.spread_indices(16, 16) == list(range(16))
+
+
+@pytest.mark.parametrize("degrees", [2.0, 5.0, 10.0])
+def test_rotated_sun_turns_by_the_angle_in_the_vertical_plane(degrees):
+    up = np.array([0.0, 0.0, 1.0])
+    sun = Sun([0.3, -0.5, 0.8])
+    turned = bench_stability.rotated_sun(sun, up, degrees, rng=1)
+    d0, d1 = np.asarray(sun.direction), np.asarray(turned.direction)
+    assert math.degrees(math.acos(np.clip(d0 @ d1, -1, 1))) == pytest.approx(degrees, abs=1e-9)
+    # the azimuth is kept: only the elevation changes
+    assert np.degrees(np.arctan2(d1[1], d1[0])) == pytest.approx(np.degrees(np.arctan2(d0[1], d0[0])), abs=1e-9)
+
+
+def test_view_gains_have_geometric_mean_one_and_stay_in_range():
+    stops = 1.0
+    gains = bench_stability.view_gains(200, stops, rng=3)
+    assert gains.shape == (200, 3)
+    np.testing.assert_allclose(np.exp(np.log(gains).mean(axis=0)), 1.0, atol=1e-12)
+    # before centring each log2 gain is within stops * (1 + WB / ln 2); centring shifts by at most that again
+    bound = 2 * stops * (1 + bench_stability.WB_PER_STOP / math.log(2.0))
+    assert np.abs(np.log2(gains)).max() <= bound
+    assert np.log2(gains).std() > 0.3  # the exposures do vary
+
+
+def _grid_proxy(n: int = 60, size: float = 30.0) -> Proxy:
+    u = np.linspace(0.0, size, n)
+    x, y = np.meshgrid(u, u)
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], axis=1)
+    i = np.arange(n - 1)
+    a = (i[:, None] * n + i[None, :]).ravel()
+    triangles = np.concatenate([np.stack([a, a + 1, a + n], 1), np.stack([a + 1, a + n + 1, a + n], 1)])
+    normals = np.tile([0.0, 0.0, 1.0], (n * n, 1))
+    return Proxy(vertices, normals, triangles)
+
+
+def test_holed_proxy_removes_half_the_area_in_patches():
+    proxy = _grid_proxy()
+    out, info = bench_stability.holed_proxy(proxy, fraction=0.5, radius=1.5, rng=0)
+    assert 0.5 <= info["removed_area_fraction"] < 0.6
+    assert info["patches"] > 10  # patches of 1.5 m on a 30 m plane, not one big hole
+    assert out.triangles.max() < len(out.vertices)
+    area = 0.5 * np.linalg.norm(np.cross(*(out.vertices[out.triangles[:, k]] - out.vertices[out.triangles[:, 0]]
+                                            for k in (1, 2))), axis=1).sum()
+    assert area / 900.0 == pytest.approx(1.0 - info["removed_area_fraction"], rel=1e-9)
+
+
+def test_decimated_proxy_has_a_tenth_of_the_triangles():
+    proxy = _grid_proxy()
+    out, info = bench_stability.decimated_proxy(proxy, factor=10)
+    assert info["triangles"] <= len(proxy.triangles) // 10
+    assert info["triangles"] >= len(proxy.triangles) // 20
+    np.testing.assert_allclose(np.linalg.norm(out.normals, axis=1), 1.0, atol=1e-9)
+    assert (out.normals[:, 2] > 0.99).all()  # oriented like the plane's normals
+
+
+def test_noisy_view_has_the_stated_noise_at_the_median():
+    from mvintrinsic.cli import demo_scene_path
+    from mvintrinsic.io import load_scene
+
+    view = load_scene(demo_scene_path()).views[0]
+    level = 0.03
+    noisy = bench_stability.noisy_view(view, level, rng=0)
+    median = np.median(view.image[view.mask], axis=0)
+    # read plus shot noise: variance (level * median)^2 * (1 + I / median) / 2, so `level` at the median
+    expected = level * median * np.sqrt(0.5 + 0.5 * np.maximum(view.image, 0.0) / median)
+    z = ((noisy.image - view.image) / expected)[view.mask & (noisy.image > 0).all(axis=2)]
+    np.testing.assert_allclose(z.std(axis=0), 1.0, atol=0.02)
+    np.testing.assert_allclose(z.mean(axis=0), 0.0, atol=0.02)
+    assert (noisy.image >= 0).all()
+
+
+def test_bench_pareto_smoke_runs_and_scores_both_presets(tmp_path):
+    out = tmp_path / "pareto.json"
+    assert bench_pareto.main(["--smoke", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    presets = report["scenes"]["demo"]["presets"]
+    assert set(presets) == {"fast", "balanced"}
+    for row in presets.values():
+        for key in ("seconds_per_view", "lmse_reflectance", "lmse_shading", "ber", "relit_psnr"):
+            assert row[key] is not None and np.isfinite(row[key]), key
+        assert row["model"]["sun"] == "direct sun"
+    assert np.isfinite(report["scenes"]["demo"]["retinex"]["lmse_reflectance"])
+
+
+def test_bench_stability_smoke_has_no_failure_and_no_nan(tmp_path):
+    out = tmp_path / "stability.json"
+    assert bench_stability.main(["--smoke", "--out", str(out)]) == 0
+    report = json.loads(out.read_text())
+    assert report["failures"] == []
+    assert len(report["points"]) == 3
+    for point in report["points"]:
+        assert point["outcome"] == "ok", point.get("error")
+        assert point["nonfinite"] == []
+        assert np.isfinite(point["lmse_reflectance"])

@@ -22,7 +22,7 @@ CORE_LAYERS = [
     "sun_position", "exposure", "pixels", "resolution", "correspondence", "sun_calibration", "segmentation", "shadow_mrf",
     "multiview_shadows", "matting", "env_refine", "relight", "pipeline",
 ]
-EDGE = {"io", "metrics", "cli", "evaluation", "preview", "__init__"}
+EDGE = {"io", "metrics", "cli", "__main__", "evaluation", "preview", "__init__"}
 
 
 def system_has_libusb() -> bool:

@@ -52,6 +52,8 @@ other exception is a failure. Per point:
 
 ``--smoke`` runs the embedded demo: its base, a 5-degree sun error and 3% noise (CI, < 2 min).
 Results are written after every point, atomically; ``--plot`` draws one panel per factor.
+``--update --factor F --out REPORT`` reruns the base and factor F only and replaces those points in
+REPORT (after a change that can only move them).
 """
 
 from __future__ import annotations
@@ -281,6 +283,8 @@ def _lighting_flags(result) -> dict:
     if gains is not None:
         flags["exposure"] = {"applied": gains.applied, "reason": gains.reason,
                              "max_abs_log_gain": float(np.abs(np.log(gains.estimated)).max())}
+    # the model chosen from the data, as lighting.json records it
+    flags["model"] = {name: {"choice": c.choice, "evidence": c.evidence} for name, c in lighting.model.items()}
     return flags
 
 
@@ -645,6 +649,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--smoke", action="store_true", help="the embedded demo, three points (CI)")
     parser.add_argument("--timeout", type=float, default=TIMEOUT, help="seconds per point before it is killed")
     parser.add_argument("--out", type=Path, default=None, help="JSON report (written after every point)")
+    parser.add_argument("--update", action="store_true",
+                        help="rerun only the --factor points (and the base) and replace them in the --out report")
     parser.add_argument("--plot", type=Path, default=None, help="PNG of the curves")
     parser.add_argument("--plot-only", type=Path, default=None, help="draw --plot from this JSON report and exit")
     parser.add_argument("--_point", help=argparse.SUPPRESS)
@@ -688,6 +694,13 @@ def main(argv: list[str] | None = None) -> int:
               folders.items()}, "levels": levels, "base": BASE,
               "settings": {"hole_radius_m": HOLE_RADIUS, "missing_fraction": MISSING_FRACTION,
                            "decimation": DECIMATION, "wb_per_stop": WB_PER_STOP}, "points": []}
+    previous = None
+    if args.update:
+        if not (args.out and args.out.is_file() and args.factor):
+            parser.error("--update needs --out (an existing report) and --factor")
+        previous = json.loads(args.out.read_text())
+    # with --update the points are written beside the report until they replace its own
+    live = args.out if previous is None else args.out.with_name(args.out.stem + ".update.json")
     started = time.perf_counter()
     for point in sweep_points(levels):
         # Retinex sees only the photos: the proxy and sun points share the base's.
@@ -701,7 +714,15 @@ def main(argv: list[str] | None = None) -> int:
         report["points"].append(entry)
         report["seconds_total"] = time.perf_counter() - started
         print(summary_line(entry), flush=True)
-        _write(args.out, report)
+        _write(live, report)
+    if previous is not None:  # the other factors' points from the earlier run, in sweep order
+        fresh = {(e["factor"], str(e["level"])): e for e in report["points"]}
+        kept = [fresh.pop((e["factor"], str(e["level"])), e) if e["factor"] in levels or e["factor"] == "base" else e
+                for e in previous["points"]]
+        report = {**previous, "points": kept + list(fresh.values()), "platform": report["platform"],
+                  "platform_of_the_other_points": previous.get("platform"),
+                  "updated": {"factors": sorted(levels), "seconds": report["seconds_total"]}}
+        live.unlink(missing_ok=True)
     failures = [e for e in report["points"]
                 if e["outcome"] in ("failure", "crash", "timeout", "harness_error") or e.get("nonfinite")]
     report["failures"] = [f"{e['factor']}={e['level']}: {e['outcome']}" for e in failures]

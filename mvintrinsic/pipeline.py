@@ -598,9 +598,11 @@ def choose_direct_sun(scene: Scene, quantities: Mapping[str, PixelQuantities], p
                       config: SunConfig | None = None) -> ModelChoice:
     """Whether the scene has direct sun (beyond the paper; ``SunConfig(direct_sun="auto")``).
 
-    No direct sun when no light/shadow pair survived (Sec. 5), or when the contrast (upper quartile)
-    across the proxy's shadow edges (:func:`~mvintrinsic.sun_calibration.direct_sun_evidence`) is below
-    ``config.sun_contrast`` over at least ``config.contrast_samples`` samples (an overcast sky).
+    No direct sun when no light/shadow pair survived (Sec. 5), or when, over at least
+    ``config.contrast_samples`` samples across the proxy's shadow edges
+    (:func:`~mvintrinsic.sun_calibration.direct_sun_evidence`), both the contrast (upper quartile)
+    is below ``config.sun_contrast`` and the warmth (median ``log(rho_R / rho_B)``) is below
+    ``config.sun_warmth`` (an overcast sky).
 
     Parameters
     ----------
@@ -622,7 +624,7 @@ def choose_direct_sun(scene: Scene, quantities: Mapping[str, PixelQuantities], p
     -------
     ModelChoice
         ``choice`` ``"direct sun"``, ``"no direct sun"`` or ``"unknown"``; ``measures``: ``pairs``,
-        ``boundary_samples`` (of Sec. 5), ``contrast``, ``contrast_quartiles``, ``edge_samples``.
+        ``boundary_samples`` (of Sec. 5), ``contrast``, ``contrast_quartiles``, ``warmth``, ``edge_samples``.
     """
     config = config_or_default(config, SunConfig)
     contrast = direct_sun_evidence(scene.views, quantities)
@@ -631,15 +633,18 @@ def choose_direct_sun(scene: Scene, quantities: Mapping[str, PixelQuantities], p
     measures = {"pairs": n_pairs, "boundary_samples": samples,
                 "contrast": None if not np.isfinite(contrast.contrast) else contrast.contrast,
                 "contrast_quartiles": [float(x) if np.isfinite(x) else None for x in contrast.quartiles],
+                "warmth": None if not np.isfinite(contrast.warmth) else contrast.warmth,
                 "edge_samples": contrast.samples}
     figures = (f"contrast across the proxy's shadow edges {contrast.contrast:.2f} (upper quartile of "
-               f"{contrast.samples} samples; threshold {config.sun_contrast:g}); {n_pairs} light/shadow pairs")
+               f"{contrast.samples} samples; threshold {config.sun_contrast:g}), warmth {contrast.warmth:+.3f} "
+               f"(median log(rho_R / rho_B); threshold {config.sun_warmth:g}); {n_pairs} light/shadow pairs")
+    warm = np.isfinite(contrast.warmth) and contrast.warmth >= config.sun_warmth
     if n_pairs == 0 and contrast.samples >= MIN_CONTRAST_SAMPLES and contrast.contrast >= config.sun_contrast:
         choice, evidence = "unknown", (f"no light/shadow pair survived ({samples} boundary samples) although the "
                                        f"images show direct sun: {figures}")
     elif n_pairs == 0:
         choice, evidence = "no direct sun", f"no light/shadow pair survived ({samples} boundary samples); {figures}"
-    elif contrast.samples >= config.contrast_samples and contrast.contrast < config.sun_contrast:
+    elif contrast.samples >= config.contrast_samples and contrast.contrast < config.sun_contrast and not warm:
         choice, evidence = "no direct sun", f"overcast: {figures}"
     else:
         choice, evidence = "direct sun", figures
@@ -804,7 +809,18 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         start = time.perf_counter()
         layers = {view.stem: environment_layers(view, quantities[view.stem]) for view in scene.views}
         timings["layers"] = time.perf_counter() - start
-        if config.steps == 4:
+        if config.steps == 4 and config.env_refine.method == "multiview" and len(scene.views) > 1:
+            # Beyond the paper: one reflectance per surface point needs no shadow boundary (overcast
+            # render: reflectance LMSE 0.0403 -> 0.0339, docs/presets.md); the S_env refinement
+            # at shadow boundaries has nothing to work on.
+            start = time.perf_counter()
+            refined = step4(scene, quantities, layers, config=config)
+            layers, step4_timings = dict(refined.layers), refined.timings
+            timings["step4"] = time.perf_counter() - start
+            timings.update({f"step4.{k}": v for k, v in step4_timings.items()})
+            model["step4"] = ModelChoice("fusion only", "no direct sun, so no shadow boundary to refine S_env at; "
+                                         "the reflectance fused across the views", {})
+        elif config.steps == 4:
             model["step4"] = ModelChoice("skipped", "no direct sun, so no shadow boundary", {})
     elif config.steps == 2:
         start = time.perf_counter()

@@ -188,7 +188,8 @@ def test_no_shadow_boundary_records_no_direct_sun_or_fails_loudly(demo_scene):
     sun = result.lighting.model["sun"]
     assert sun.choice == "no direct sun" and sun.measures["pairs"] == 0
     assert sun.measures["contrast"] < 1.5  # one grey: no contrast beyond what S_env explains
-    assert result.lighting.model["step4"].choice == "skipped"
+    # no shadow boundary: nothing for the S_env refinement, but the reflectance is fused across views
+    assert result.lighting.model["step4"].choice == "fusion only" and "step4.fusion" in result.timings
     assert (result.lighting.sun_radiance == 0).all()
     for view in scene.views:
         layers = result.layers[view.stem]
@@ -196,6 +197,9 @@ def test_no_shadow_boundary_records_no_direct_sun_or_fails_loudly(demo_scene):
         valid = layers.shadow_labels != 128
         assert (layers.shadow_labels[valid] == 255).all() and (layers.sun_shading == 0).all()
         np.testing.assert_allclose(layers.reconstruct()[valid], view.image[valid], rtol=1e-4, atol=1e-6)
+    # The paper's Step 4 (S_env offsets at shadow boundaries) is skipped outright.
+    offsets = decompose(scene, config=Config(env_refine=EnvRefineConfig(method="paper")))
+    assert offsets.lighting.model["step4"].choice == "skipped" and "step4" not in offsets.timings
     # The paper's assumption (direct sun always) fails loudly, or falls back when asked.
     paper = Config(sun=SunConfig(direct_sun="always"))
     with pytest.raises(SunCalibrationError, match="allow_missing_sun=True"):
@@ -209,6 +213,7 @@ def test_sunny_demo_records_direct_sun_and_step4(demo_result):
     model = demo_result.lighting.model
     assert model["sun"].choice == "direct sun"
     assert model["sun"].measures["contrast"] > 2.0 and model["sun"].measures["pairs"] > 10
+    assert model["sun"].measures["warmth"] > Config().sun.sun_warmth  # the sun is warmer than the sky light
     assert model["step4"].choice == "run" and model["step4"].measures["boundary_pixels"] > 100
     sky = model["sky"]  # the family by its held-out error, recorded with it
     assert sky.choice == demo_result.lighting.sky.model and sky.measures["chosen_by"] == "held-out error"

@@ -4,6 +4,7 @@
                                       [--out benchmarks/results/pareto.json] [--figure benchmarks/results/pareto.png]
     python benchmarks/bench_pareto.py --scaling --data DIR --scene NAME [--out ...]
     python benchmarks/bench_pareto.py --end-to-end PRESET --data DIR --scene NAME [--out ...]
+    python benchmarks/bench_pareto.py --plot-only benchmarks/results/pareto.json [--figure PNG]
     python benchmarks/bench_pareto.py --smoke
 
 Per scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` the embedded demo) and preset
@@ -201,6 +202,7 @@ def save_figure(report: dict, path: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     scenes = report["scenes"]
     presets = [p for p in PRESETS if all(p in s["presets"] for s in scenes.values())]
@@ -222,6 +224,9 @@ def save_figure(report: dict, path: Path) -> None:
             ry = np.mean([s["retinex"][key] for s in scenes.values()])
             ax.scatter(rx, ry, marker="s", color="grey", label="colour Retinex")
         ax.set_xscale("log")
+        ax.xaxis.set_major_locator(matplotlib.ticker.FixedLocator([0.2, 0.5, 1, 2, 5, 10, 20, 50]))
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel("seconds per view")
         ax.set_ylabel(label + " (mean over scenes)")
         ax.grid(alpha=0.3)
@@ -256,7 +261,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--views", type=int, default=None, help="only the first N views of each scene")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG chart")
+    parser.add_argument("--plot-only", type=Path, default=None, help="draw --figure from this JSON report and exit")
     args = parser.parse_args(argv)
+    if args.plot_only:
+        import json
+
+        save_figure(json.loads(args.plot_only.read_text()), args.figure or args.plot_only.with_suffix(".png"))
+        return 0
     from mvintrinsic.cli import demo_scene_path
 
     names = ["demo"] if args.smoke else args.scene

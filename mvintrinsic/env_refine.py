@@ -135,9 +135,11 @@ class EnvRefineConfig:
         shading falls below this fraction of the view's median, ``S_ind`` is raised to reach it
         (:func:`relayer`); in (0, 1).
     min_boundary_share : float
-        The pipeline runs Step 4 only when the Step-3 labels hold shadow-boundary pixels (shadow
-        pixels with a lit 4-neighbour) on at least this share of the valid pixels of all views
-        (beyond the paper: without a shadow boundary Step 4 has nothing to correct; recorded in
+        The pipeline runs Step 4 only when the Step-3 labels hold cast-shadow boundary pixels
+        (shadow pixels with a lit 4-neighbour, the proxy's sun cosine at least 0.2: not an
+        attached shadow) on at least this share of the valid pixels of all views (beyond the
+        paper: without a shadow boundary the ``S_env`` offsets have nothing to correct; the
+        ``"multiview"`` fusion, which needs none, still runs: "fusion only"; recorded in
         ``lighting.json`` "model"). 5e-4 is 86 pixels of a 480x360 view; one shadow edge across
         a view is several hundred.
     """

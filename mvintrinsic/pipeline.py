@@ -678,10 +678,25 @@ def sky_choice(sky: SkyModel) -> ModelChoice:
     return ModelChoice(sky.model, text, evidence)
 
 
-def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig) -> ModelChoice:
-    """Step 4 runs only where the labels hold shadow boundaries (``config.min_boundary_share``)."""
-    boundary = valid = 0
-    for layer in layers.values():
+#: Sun cosine (the proxy's, per pixel) below which a shadow pixel at a label boundary is taken for
+#: an attached shadow (the surface turned away from the sun; a crease, not a cast-shadow edge), as
+#: the lit side of :func:`~mvintrinsic.sun_calibration.direct_sun_evidence`'s samples.
+ATTACHED_COSINE = 0.2
+
+
+def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig,
+                  quantities: Mapping[str, PixelQuantities] | None = None, *, views: int = 2) -> ModelChoice:
+    """Step 4 runs where the labels hold cast-shadow boundaries (``config.min_boundary_share``).
+
+    A boundary pixel is a shadow pixel with a lit 4-neighbour; with ``quantities`` those whose
+    proxy sun cosine is below :data:`ATTACHED_COSINE` (attached shadows: creases between faces
+    turned to and away from the sun) do not count. Without cast-shadow boundaries the paper's
+    ``S_env`` offsets have nothing to work on: ``"skipped"``; the ``"multiview"`` method's
+    reflectance fusion needs no boundary and still runs with two views or more:
+    ``"fusion only"``.
+    """
+    boundary = attached = valid = 0
+    for stem, layer in layers.items():
         labels = layer.shadow_labels
         shadow, lit = labels == SHADOW_LABELS["shadow"], labels == SHADOW_LABELS["lit"]
         edge = np.zeros_like(shadow)
@@ -689,13 +704,23 @@ def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig
         edge[:-1] |= shadow[:-1] & lit[1:]
         edge[:, 1:] |= shadow[:, 1:] & lit[:, :-1]
         edge[:, :-1] |= shadow[:, :-1] & lit[:, 1:]
+        if quantities is not None:
+            turned = edge & (np.asarray(quantities[stem].cosine) < ATTACHED_COSINE)
+            attached += int(turned.sum())
+            edge &= ~turned
         boundary += int(edge.sum())
         valid += int((shadow | lit).sum())
     share = boundary / max(valid, 1)
-    measures = {"boundary_pixels": boundary, "labelled_pixels": valid, "boundary_share": share}
-    evidence = (f"{boundary} shadow-boundary pixels, {share:.2e} of the labelled pixels "
-                f"(threshold {config.min_boundary_share:g})")
-    return ModelChoice("run" if share >= config.min_boundary_share and boundary > 0 else "skipped", evidence, measures)
+    measures = {"boundary_pixels": boundary, "attached_pixels": attached, "labelled_pixels": valid,
+                "boundary_share": share}
+    evidence = (f"{boundary} cast-shadow boundary pixels, {share:.2e} of the labelled pixels "
+                f"(threshold {config.min_boundary_share:g}; {attached} more at attached shadows, not counted)")
+    if share >= config.min_boundary_share and boundary > 0:
+        return ModelChoice("run", evidence, measures)
+    if config.method == "multiview" and views > 1:
+        return ModelChoice("fusion only", evidence + ": no S_env to refine at a boundary; the reflectance "
+                           "fused across the views", measures)
+    return ModelChoice("skipped", evidence, measures)
 
 
 def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
@@ -809,19 +834,18 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         start = time.perf_counter()
         layers = {view.stem: environment_layers(view, quantities[view.stem]) for view in scene.views}
         timings["layers"] = time.perf_counter() - start
-        if config.steps == 4 and config.env_refine.method == "multiview" and len(scene.views) > 1:
+        if config.steps == 4:  # no boundary: the multi-view fusion alone, or nothing (docs/stability.md)
+            model["step4"] = _choose_step4(layers, config.env_refine, quantities, views=len(scene.views))
+            model["step4"] = ModelChoice(model["step4"].choice, "no direct sun, so no shadow boundary: "
+                                         + model["step4"].evidence, model["step4"].measures)
+        if config.steps == 4 and model["step4"].choice == "fusion only":
             # Beyond the paper: one reflectance per surface point needs no shadow boundary (overcast
-            # render: reflectance LMSE 0.0403 -> 0.0339, docs/presets.md); the S_env refinement
-            # at shadow boundaries has nothing to work on.
+            # render: reflectance LMSE 0.0403 -> 0.0339, docs/stability.md).
             start = time.perf_counter()
             refined = step4(scene, quantities, layers, config=config)
             layers, step4_timings = dict(refined.layers), refined.timings
             timings["step4"] = time.perf_counter() - start
             timings.update({f"step4.{k}": v for k, v in step4_timings.items()})
-            model["step4"] = ModelChoice("fusion only", "no direct sun, so no shadow boundary to refine S_env at; "
-                                         "the reflectance fused across the views", {})
-        elif config.steps == 4:
-            model["step4"] = ModelChoice("skipped", "no direct sun, so no shadow boundary", {})
     elif config.steps == 2:
         start = time.perf_counter()
         layers = {view.stem: step2_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
@@ -834,8 +858,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
             timings["scatter"] += step3_timings.pop("scatter")
         timings.update(step3_timings)
         if config.steps == 4:
-            model["step4"] = _choose_step4(layers, config.env_refine)
-        if config.steps == 4 and model["step4"].choice == "run":
+            model["step4"] = _choose_step4(layers, config.env_refine, quantities, views=len(scene.views))
+        if config.steps == 4 and model["step4"].choice in ("run", "fusion only"):
             logger.info("step 4 (%s) over %d views", config.env_refine.method, len(scene.views))
             start = time.perf_counter()
             if tasks is not None and config.env_refine.method == "paper":  # per view, from Step 3 in place

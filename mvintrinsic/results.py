@@ -120,7 +120,8 @@ class ModelChoice:
     Parameters
     ----------
     choice : str
-        What was chosen, e.g. ``"direct sun"`` / ``"no direct sun"`` or ``"run"`` / ``"skipped"``.
+        What was chosen, e.g. ``"direct sun"`` / ``"no direct sun"`` or ``"run"`` / ``"fusion only"`` /
+        ``"skipped"``.
     evidence : str
         Why, in one sentence with the figures.
     measures : mapping of str to float, int, bool or None
@@ -334,7 +335,9 @@ class Lighting:
     model : mapping of str to ModelChoice, optional
         The choices of the model made from the data and their evidence (beyond the paper):
         ``"sun"`` (direct sun or none, :func:`mvintrinsic.sun_calibration.direct_sun_evidence`),
-        ``"step4"`` (run or skipped for want of shadow boundaries).
+        ``"step4"`` (``"run"``; ``"fusion only"`` without cast-shadow boundaries, the ``S_env``
+        offsets skipped and the multi-view reflectance fusion kept; ``"skipped"``), ``"sky"``
+        (the sky family by its held-out error).
     """
 
     sun: Sun

@@ -366,3 +366,23 @@ def test_cli_decompose_on_dev_courtyard(dev_courtyard, tmp_path):
         assert estimated.mean() > 0.5
         difference = np.abs(layers.reconstruct()[estimated] - view.image[estimated])
         assert difference.max() <= RECONSTRUCTION_TOL * max(1.0, float(view.image[estimated].max()))
+
+
+def test_step4_choice_counts_cast_shadow_boundaries_only():
+    from types import SimpleNamespace
+
+    labels = np.full((40, 60), 255, np.uint8)
+    labels[:, 30:] = 0  # a vertical shadow boundary, 40 boundary pixels
+    cosine = np.full((40, 60), 0.7)
+    layers = {"a": SimpleNamespace(shadow_labels=labels)}
+    cast = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=cosine)})
+    assert cast.choice == "run" and cast.measures["boundary_pixels"] == 40 and cast.measures["attached_pixels"] == 0
+    # the shadow side turned away from the sun: a crease (attached shadow), not a cast shadow
+    turned = np.where(np.arange(60) >= 30, 0.05, 0.7)[None, :].repeat(40, axis=0)
+    crease = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)})
+    assert crease.choice == "fusion only" and crease.measures["boundary_pixels"] == 0
+    assert crease.measures["attached_pixels"] == 40
+    paper = pipeline._choose_step4(layers, EnvRefineConfig(method="paper"), {"a": SimpleNamespace(cosine=turned)})
+    assert paper.choice == "skipped"
+    single = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=1)
+    assert single.choice == "skipped"

@@ -60,7 +60,7 @@ from .skymodel import SkyConfig, SkyModel
 from .sun_calibration import SunCalibration, SunConfig, SunPairs, calibrate_sun, direct_sun_evidence, find_sun_pairs
 
 __all__ = ["PRESETS", "Config", "Step3View", "calibrate", "carry_to_pixels", "choose_direct_sun", "decompose",
-           "environment_layers", "label_layers", "sky_choice", "step2_layers", "step3", "step3_view", "step4"]
+           "environment_layers", "choose_cast_shadows", "label_layers", "sky_choice", "step2_layers", "step3", "step3_view", "step4"]
 
 logger = logging.getLogger(__name__)
 
@@ -653,16 +653,63 @@ def choose_direct_sun(scene: Scene, quantities: Mapping[str, PixelQuantities], p
     return ModelChoice(choice, evidence, measures)
 
 
-def environment_layers(view: View, quantities: PixelQuantities) -> IntrinsicLayers:
-    """The layers of a view without direct sun: ``R = I / S_env`` (Eq. 2 with ``L_sun = 0``).
+#: Width of the band of :func:`~mvintrinsic.sun_calibration.direct_sun_evidence`'s samples, pixels
+#: (shadow pixels 2 to 8 px from the lit region): samples / width is the length of the proxy's
+#: cast-shadow edges in pixels.
+EDGE_BAND = 6
 
-    Every valid pixel is labelled lit with ``v_sun = 1`` (there is no sun to shadow) and
-    ``S_sun = 0``; ``S_sky`` and ``S_ind`` are Step 1's per pixel, floored as everywhere
+
+def choose_cast_shadows(scene: Scene, quantities: Mapping[str, PixelQuantities], sun: ModelChoice, *,
+                        config: SunConfig | None = None) -> ModelChoice:
+    """Whether the views hold cast shadows at all (beyond the paper).
+
+    Two figures of the proxy's cast shadows in view, both needed to call a scene shadowless:
+    the share of the sunward pixels (proxy sun cosine at least 0.2) in the proxy's cast shadow
+    (``~v <= 0.1``), below ``config.min_shadow_share``, and the length of its cast-shadow edges
+    (the samples of :func:`~mvintrinsic.sun_calibration.direct_sun_evidence`, recorded in
+    ``sun.measures``, divided by their band's width :data:`EDGE_BAND`) per view, in units of the
+    view's size ``sqrt(H W)``, below ``config.min_shadow_edge``. Then the photos hold no cast
+    shadow worth labelling: every pixel is lit (``v_sun = 1``), Step 3's labels and matting are
+    skipped, and so are Step 4's ``S_env`` offsets.
+
+    Returns
+    -------
+    ModelChoice
+        ``"cast shadows"`` or ``"no cast shadow"``; ``measures``: ``shadow_share``,
+        ``shadow_edge`` (view sizes of edge per view), ``edge_samples``.
+    """
+    config = config_or_default(config, SunConfig)
+    samples = int(sun.measures.get("edge_samples") or 0)
+    size = float(sum(np.sqrt(v.shape[0] * v.shape[1]) for v in scene.views))
+    length = samples / EDGE_BAND / max(size, 1.0)
+    sunward = cast = 0
+    for view in scene.views:
+        q = quantities[view.stem]
+        facing = np.asarray(q.valid) & ~np.asarray(q.sky_mask) & (np.asarray(q.cosine) >= ATTACHED_COSINE)
+        sunward += int(facing.sum())
+        cast += int((facing & (np.asarray(q.visibility) <= 0.1)).sum())
+    share = cast / max(sunward, 1)
+    measures = {"shadow_share": share, "shadow_edge": length, "edge_samples": samples}
+    evidence = (f"the proxy's cast shadow covers {share:.2%} of the sunward pixels (threshold "
+                f"{config.min_shadow_share:.1%}), its edges {length:.2f} view sizes per view ({samples} edge samples; "
+                f"threshold {config.min_shadow_edge:g})")
+    none = share < config.min_shadow_share and length < config.min_shadow_edge
+    return ModelChoice("no cast shadow" if none else "cast shadows", evidence, measures)
+
+
+def environment_layers(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray | None = None
+                       ) -> IntrinsicLayers:
+    """The layers of a view without a cast shadow: every valid pixel lit, ``v_sun = 1``.
+
+    Without direct sun (``sun_radiance`` None or 0) ``R = I / S_env`` (Eq. 2 with ``L_sun = 0``);
+    with direct sun but no cast shadow in view, ``R = I / (S_env + L_sun cos)``. ``S_sky`` and
+    ``S_ind`` are Step 1's per pixel, floored as everywhere
     (:func:`~mvintrinsic.pixels.layers_from_shading`).
     """
     labels = np.full(view.shape, SHADOW_LABELS["lit"], np.uint8)
+    radiance = np.zeros(3) if sun_radiance is None else np.asarray(sun_radiance, dtype=np.float64)
     return layers_from_shading(view, quantities.valid, quantities.sky, quantities.indirect,
-                               np.ones(view.shape), quantities.cosine, np.zeros(3), labels)
+                               np.ones(view.shape), quantities.cosine, radiance, labels)
 
 
 def sky_choice(sky: SkyModel) -> ModelChoice:
@@ -829,14 +876,20 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
             sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
     timings["sun_pairs"] = time.perf_counter() - start
 
-    if "sun" in model and model["sun"].choice == "no direct sun":
-        # R = I / S_env (Eq. 2 with L_sun = 0): no shadow to label, nothing for Step 4 to correct.
+    if "sun" in model and model["sun"].choice == "direct sun":
+        model["shadows"] = choose_cast_shadows(scene, quantities, model["sun"], config=config.sun)
+    unshadowed = {"no direct sun": "no direct sun", "no cast shadow": "no cast shadow in view"}
+    reason = unshadowed.get(model["sun"].choice if "sun" in model else "") or unshadowed.get(
+        model["shadows"].choice if "shadows" in model else "")
+    if reason is not None and (config.steps > 2 or "shadows" not in model):  # Step 2 keeps the proxy's shadows
+        # Every pixel lit: R = I / S_env without direct sun (Eq. 2 with L_sun = 0), or
+        # R = I / (S_env + L_sun cos) without a cast shadow; nothing to label, no S_env to refine.
         start = time.perf_counter()
-        layers = {view.stem: environment_layers(view, quantities[view.stem]) for view in scene.views}
+        layers = {view.stem: environment_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
         timings["layers"] = time.perf_counter() - start
         if config.steps == 4:  # no boundary: the multi-view fusion alone, or nothing (docs/stability.md)
             model["step4"] = _choose_step4(layers, config.env_refine, quantities, views=len(scene.views))
-            model["step4"] = ModelChoice(model["step4"].choice, "no direct sun, so no shadow boundary: "
+            model["step4"] = ModelChoice(model["step4"].choice, f"{reason}, so no shadow boundary: "
                                          + model["step4"].evidence, model["step4"].measures)
         if config.steps == 4 and model["step4"].choice == "fusion only":
             # Beyond the paper: one reflectance per surface point needs no shadow boundary (overcast

@@ -132,6 +132,13 @@ class SunConfig:
     contrast_samples : int
         Fewest shadow-edge samples for the contrast to decide; with fewer (no proxy shadow in
         view) the pairs decide alone.
+    min_shadow_share, min_shadow_edge : float
+        ``"auto"`` with direct sun: the views hold no cast shadow when the proxy's cast shadow
+        covers less than ``min_shadow_share`` of the sunward pixels and its edges in view are
+        shorter than ``min_shadow_edge`` view sizes (``sqrt(H W)``) per view
+        (:func:`mvintrinsic.pipeline.choose_cast_shadows`); then every pixel is lit. Measured on
+        a street rendered without occluders: 0.74% and 0.10; on nine sunny scenes 2.3-17.7% and
+        0.32-14 (the demo the least: 2.3%, and 0.32 at 240x180, 1.29 at 480x360).
     """
 
     n_clusters: int = 4
@@ -148,6 +155,8 @@ class SunConfig:
     sun_contrast: float = 2.0
     sun_warmth: float = 0.07
     contrast_samples: int = 500
+    min_shadow_share: float = 0.012
+    min_shadow_edge: float = 0.35
 
     def __post_init__(self) -> None:
         for name, least in (("n_clusters", 2), ("walk", 1), ("boundary_step", 1), ("smoothing", 1)):
@@ -161,6 +170,9 @@ class SunConfig:
             raise ValueError(f"direct_sun must be 'auto' or 'always', got {self.direct_sun!r}")
         if not self.sun_contrast >= 1.0:
             raise ValueError(f"sun_contrast must be >= 1, got {self.sun_contrast!r}")
+        for name in ("min_shadow_share", "min_shadow_edge"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)!r}")
         if not self.sun_warmth > 0:
             raise ValueError(f"sun_warmth must be positive, got {self.sun_warmth!r}")
         if isinstance(self.contrast_samples, bool) or not isinstance(self.contrast_samples, int) or \

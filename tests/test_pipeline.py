@@ -386,3 +386,48 @@ def test_step4_choice_counts_cast_shadow_boundaries_only():
     assert paper.choice == "skipped"
     single = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=1)
     assert single.choice == "skipped"
+
+
+def test_cast_shadow_choice_from_the_proxys_shadow_edges(demo_scene):
+    from types import SimpleNamespace
+
+    from mvintrinsic.results import ModelChoice
+
+    views = demo_scene.views[:2]
+    scene = Scene(views, demo_scene.proxy, demo_scene.sun, demo_scene.up)
+    size = sum(np.sqrt(v.shape[0] * v.shape[1]) for v in views)
+    few = ModelChoice("direct sun", "", {"edge_samples": int(0.1 * pipeline.EDGE_BAND * size)})
+    many = ModelChoice("direct sun", "", {"edge_samples": int(1.3 * pipeline.EDGE_BAND * size)})
+    shape = views[0].shape
+
+    def quantities(shadowed: float):
+        visibility = np.ones(shape)
+        visibility[: int(round(shadowed * shape[0]))] = 0.0  # the top rows in the proxy's cast shadow
+        q = SimpleNamespace(valid=np.ones(shape, bool), sky_mask=np.zeros(shape, bool), cosine=np.full(shape, 0.8),
+                            visibility=visibility)
+        return {v.stem: q for v in views}
+
+    none = pipeline.choose_cast_shadows(scene, quantities(0.005), few)
+    assert none.choice == "no cast shadow" and none.measures["shadow_edge"] == pytest.approx(0.1, abs=1e-2)
+    assert none.measures["shadow_share"] == pytest.approx(1 / 180, abs=1e-9)  # one row of 180
+    # either figure alone keeps the shadows: a large shadow with short edges, or long edges
+    assert pipeline.choose_cast_shadows(scene, quantities(0.2), few).choice == "cast shadows"
+    assert pipeline.choose_cast_shadows(scene, quantities(0.005), many).choice == "cast shadows"
+    with pytest.raises(ValueError, match="min_shadow_edge"):
+        SunConfig(min_shadow_edge=-1.0)
+
+
+def test_no_cast_shadow_lights_every_pixel_and_keeps_the_sun(demo_scene):
+    scene = Scene(demo_scene.views[:3], demo_scene.proxy, demo_scene.sun, demo_scene.up)
+    # thresholds above the demo's figures (2.3% shadow share, 0.32 view sizes of edge per view)
+    result = decompose(scene, config=Config(sun=SunConfig(min_shadow_share=0.5, min_shadow_edge=100.0)))
+    model = result.lighting.model
+    assert model["sun"].choice == "direct sun" and model["shadows"].choice == "no cast shadow"
+    assert model["step4"].choice == "fusion only" and (result.lighting.sun_radiance > 0).all()
+    for view in scene.views:
+        layers = result.layers[view.stem]
+        valid = layers.shadow_labels != 128
+        assert (layers.shadow_labels[valid] == 255).all() and (layers.visibility[valid] == 1).all()
+        assert np.isfinite(layers.reflectance).all() and layers.sun_shading[valid].max() > 0
+        np.testing.assert_allclose(layers.reconstruct()[valid], view.image[valid], rtol=1e-4, atol=1e-6)
+    assert "shadow_labels" not in result.timings and "matting" not in result.timings

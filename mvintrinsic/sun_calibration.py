@@ -127,7 +127,7 @@ class SunConfig:
         ``"auto"``: direct sun is present, whatever the contrast, when the median warmth of the
         edge samples (:attr:`SunContrast.warmth`, ``log(rho_R / rho_B)``) is at least this: an
         overcast scene needs both figures below their thresholds. Measured: 0.03 on an overcast
-        render, 0.12-0.24 on seven sunny scenes (three of them with a contrast of 1.4-1.9 at
+        render, 0.12-0.28 on eight sunny scenes (three of them with a contrast of 1.4-1.9 at
         1000x750, which the contrast alone called overcast).
     contrast_samples : int
         Fewest shadow-edge samples for the contrast to decide; with fewer (no proxy shadow in
@@ -605,7 +605,7 @@ class SunContrast:
         true sun edges, because the sun is warmer than the sky light that ``E`` holds
         (``rho_c = 1 + L_sun,c cos / E_c``); about 0 without direct sun, where only reflectance
         changes colour the ratio, either way. It survives an MVS proxy's misplaced edges better
-        than ``contrast``: measured 0.03 on an overcast render, 0.12-0.24 on seven sunny scenes,
+        than ``contrast``: measured 0.03 on an overcast render, 0.12-0.28 on eight sunny scenes,
         among them three whose ``contrast`` was 1.4-1.9 at 1000x750 (``docs/presets.md``). NaN
         without samples.
     """

@@ -604,8 +604,9 @@ class SunContrast:
         Median over the samples of ``log(rho_R / rho_B)``, ``rho`` per channel: positive across
         true sun edges, because the sun is warmer than the sky light that ``E`` holds
         (``rho_c = 1 + L_sun,c cos / E_c``); about 0 without direct sun, where only reflectance
-        changes colour the ratio, either way. It survives an MVS proxy's misplaced edges better
-        than ``contrast``: measured 0.03 on an overcast render, 0.12-0.28 on eight sunny scenes,
+        changes colour the ratio, either way. A white balance (per-channel gains on the photo)
+        cancels in each ratio. It survives an MVS proxy's misplaced edges better than
+        ``contrast``: measured 0.03 on an overcast render, 0.12-0.28 on eight sunny scenes,
         among them three whose ``contrast`` was 1.4-1.9 at 1000x750 (``docs/presets.md``). NaN
         without samples.
     """

@@ -431,3 +431,19 @@ def test_no_cast_shadow_lights_every_pixel_and_keeps_the_sun(demo_scene):
         assert np.isfinite(layers.reflectance).all() and layers.sun_shading[valid].max() > 0
         np.testing.assert_allclose(layers.reconstruct()[valid], view.image[valid], rtol=1e-4, atol=1e-6)
     assert "shadow_labels" not in result.timings and "matting" not in result.timings
+
+
+def test_warmth_is_blind_to_white_balance_and_says_sun_on_the_demo(demo_scene):
+    from mvintrinsic.sun_calibration import direct_sun_evidence
+
+    scene = Scene(demo_scene.views[:2], demo_scene.proxy, demo_scene.sun, demo_scene.up)
+    tracer = Tracer(scene.proxy)
+    quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=0), tracer)
+    before = direct_sun_evidence(scene.views, quantities)
+    gains = np.array([1.6, 1.0, 0.55], np.float32)  # a strong warm white balance
+    balanced = [View(v.stem, v.image * gains, v.camera, v.mask) for v in scene.views]
+    after = direct_sun_evidence(balanced, quantities)
+    assert before.samples == after.samples > 300
+    assert after.warmth == pytest.approx(before.warmth, abs=1e-5)
+    assert after.contrast == pytest.approx(before.contrast, rel=0.05)  # luminance weights move it a little
+    assert before.warmth > SunConfig().sun_warmth

@@ -659,15 +659,15 @@ def choose_direct_sun(scene: Scene, quantities: Mapping[str, PixelQuantities], p
 EDGE_BAND = 6
 
 
-def choose_cast_shadows(scene: Scene, quantities: Mapping[str, PixelQuantities], sun: ModelChoice, *,
+def choose_cast_shadows(scene: Scene, quantities: Mapping[str, PixelQuantities], edge_samples: int, *,
                         config: SunConfig | None = None) -> ModelChoice:
     """Whether the views hold cast shadows at all (beyond the paper).
 
     Two figures of the proxy's cast shadows in view, both needed to call a scene shadowless:
     the share of the sunward pixels (proxy sun cosine at least 0.2) in the proxy's cast shadow
     (``~v <= 0.1``), below ``config.min_shadow_share``, and the length of its cast-shadow edges
-    (the samples of :func:`~mvintrinsic.sun_calibration.direct_sun_evidence`, recorded in
-    ``sun.measures``, divided by their band's width :data:`EDGE_BAND`) per view, in units of the
+    (``edge_samples``, the samples of :func:`~mvintrinsic.sun_calibration.direct_sun_evidence`,
+    divided by their band's width :data:`EDGE_BAND`) per view, in units of the
     view's size ``sqrt(H W)``, below ``config.min_shadow_edge``. Then the photos hold no cast
     shadow worth labelling: every pixel is lit (``v_sun = 1``), Step 3's labels and matting are
     skipped, and so are Step 4's ``S_env`` offsets.
@@ -679,7 +679,7 @@ def choose_cast_shadows(scene: Scene, quantities: Mapping[str, PixelQuantities],
         ``shadow_edge`` (view sizes of edge per view), ``edge_samples``.
     """
     config = config_or_default(config, SunConfig)
-    samples = int(sun.measures.get("edge_samples") or 0)
+    samples = int(edge_samples)
     size = float(sum(np.sqrt(v.shape[0] * v.shape[1]) for v in scene.views))
     length = samples / EDGE_BAND / max(size, 1.0)
     sunward = cast = 0
@@ -732,11 +732,10 @@ ATTACHED_COSINE = 0.2
 
 
 def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig,
-                  quantities: Mapping[str, PixelQuantities] | None = None, *, views: int = 2) -> ModelChoice:
+                  quantities: Mapping[str, PixelQuantities], *, views: int) -> ModelChoice:
     """Step 4 runs where the labels hold cast-shadow boundaries (``config.min_boundary_share``).
 
-    A boundary pixel is a shadow pixel with a lit 4-neighbour; with ``quantities`` those whose
-    proxy sun cosine is below :data:`ATTACHED_COSINE` (attached shadows: creases between faces
+    A boundary pixel is a shadow pixel with a lit 4-neighbour; those whose proxy sun cosine is below :data:`ATTACHED_COSINE` (attached shadows: creases between faces
     turned to and away from the sun) do not count. Without cast-shadow boundaries the paper's
     ``S_env`` offsets have nothing to work on: ``"skipped"``; the ``"multiview"`` method's
     reflectance fusion needs no boundary and still runs with two views or more:
@@ -751,10 +750,9 @@ def _choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig
         edge[:-1] |= shadow[:-1] & lit[1:]
         edge[:, 1:] |= shadow[:, 1:] & lit[:, :-1]
         edge[:, :-1] |= shadow[:, :-1] & lit[:, 1:]
-        if quantities is not None:
-            turned = edge & (np.asarray(quantities[stem].cosine) < ATTACHED_COSINE)
-            attached += int(turned.sum())
-            edge &= ~turned
+        turned = edge & (np.asarray(quantities[stem].cosine) < ATTACHED_COSINE)
+        attached += int(turned.sum())
+        edge &= ~turned
         boundary += int(edge.sum())
         valid += int((shadow | lit).sum())
     share = boundary / max(valid, 1)
@@ -877,28 +875,17 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     timings["sun_pairs"] = time.perf_counter() - start
 
     if "sun" in model and model["sun"].choice == "direct sun":
-        model["shadows"] = choose_cast_shadows(scene, quantities, model["sun"], config=config.sun)
-    unshadowed = {"no direct sun": "no direct sun", "no cast shadow": "no cast shadow in view"}
-    reason = unshadowed.get(model["sun"].choice if "sun" in model else "") or unshadowed.get(
-        model["shadows"].choice if "shadows" in model else "")
-    if reason is not None and (config.steps > 2 or "shadows" not in model):  # Step 2 keeps the proxy's shadows
+        model["shadows"] = choose_cast_shadows(scene, quantities, model["sun"].measures["edge_samples"],
+                                               config=config.sun)
+    no_sun = "sun" in model and model["sun"].choice == "no direct sun"
+    no_cast = "shadows" in model and model["shadows"].choice == "no cast shadow"
+    shared = step3_futures = None
+    if no_sun or (no_cast and config.steps > 2):  # Step 2 keeps the proxy's shadows
         # Every pixel lit: R = I / S_env without direct sun (Eq. 2 with L_sun = 0), or
         # R = I / (S_env + L_sun cos) without a cast shadow; nothing to label, no S_env to refine.
         start = time.perf_counter()
         layers = {view.stem: environment_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
         timings["layers"] = time.perf_counter() - start
-        if config.steps == 4:  # no boundary: the multi-view fusion alone, or nothing (docs/stability.md)
-            model["step4"] = _choose_step4(layers, config.env_refine, quantities, views=len(scene.views))
-            model["step4"] = ModelChoice(model["step4"].choice, f"{reason}, so no shadow boundary: "
-                                         + model["step4"].evidence, model["step4"].measures)
-        if config.steps == 4 and model["step4"].choice == "fusion only":
-            # Beyond the paper: one reflectance per surface point needs no shadow boundary (overcast
-            # render: reflectance LMSE 0.0403 -> 0.0339, docs/stability.md).
-            start = time.perf_counter()
-            refined = step4(scene, quantities, layers, config=config)
-            layers, step4_timings = dict(refined.layers), refined.timings
-            timings["step4"] = time.perf_counter() - start
-            timings.update({f"step4.{k}": v for k, v in step4_timings.items()})
     elif config.steps == 2:
         start = time.perf_counter()
         layers = {view.stem: step2_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
@@ -910,12 +897,21 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         if "scatter" in step3_timings:  # the labels' shipping adds to the inputs'
             timings["scatter"] += step3_timings.pop("scatter")
         timings.update(step3_timings)
-        if config.steps == 4:
-            model["step4"] = _choose_step4(layers, config.env_refine, quantities, views=len(scene.views))
-        if config.steps == 4 and model["step4"].choice in ("run", "fusion only"):
+
+    if config.steps == 4:
+        # Without cast-shadow boundaries the S_env offsets are skipped and the multi-view fusion,
+        # which needs none, runs alone (overcast render: reflectance LMSE 0.0403 -> 0.0339,
+        # docs/stability.md).
+        choice = _choose_step4(layers, config.env_refine, quantities, views=len(scene.views))
+        if no_sun or no_cast:
+            choice = ModelChoice(choice.choice, ("no direct sun" if no_sun else "no cast shadow in view")
+                                 + ", so no shadow boundary: " + choice.evidence, choice.measures)
+        model["step4"] = choice
+        if choice.choice in ("run", "fusion only"):
             logger.info("step 4 (%s) over %d views", config.env_refine.method, len(scene.views))
             start = time.perf_counter()
-            if tasks is not None and config.env_refine.method == "paper":  # per view, from Step 3 in place
+            if tasks is not None and step3_futures is not None and config.env_refine.method == "paper":
+                # per view, from Step 3 in place
                 futures = tasks.submit("step4", _offsets_task, {s: (inputs[s], step3_futures[s]) for s in scene.stems},
                                        config=config.env_refine)
                 layers = tasks.gather(futures, desc="step 4", progress=progress)

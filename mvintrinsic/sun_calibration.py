@@ -614,7 +614,7 @@ class SunContrast:
     contrast: float
     quartiles: np.ndarray
     samples: int
-    warmth: float = float("nan")
+    warmth: float
 
 
 def direct_sun_evidence(views: Sequence[View], quantities: Mapping[str, PixelQuantities]) -> SunContrast:
@@ -666,18 +666,20 @@ def direct_sun_evidence(views: Sequence[View], quantities: Mapping[str, PixelQua
         good = lit[ly, lx]
         ys, xs, ly, lx = ys[good], xs[good], ly[good], lx[good]
         logs.append(np.log(image[ly, lx] / image[ys, xs]) - np.log(env[ly, lx] / env[ys, xs]))
-        rgb = np.asarray(view.image, dtype=np.float64)
-        env_rgb = np.asarray(q.sky, dtype=np.float64) + q.indirect
-        lit_rgb, shadow_rgb = rgb[ly, lx], rgb[ys, xs]
-        lit_env, shadow_env = env_rgb[ly, lx], env_rgb[ys, xs]
-        positive = ((lit_rgb > 0) & (shadow_rgb > 0) & (lit_env > 0) & (shadow_env > 0))[:, [0, 2]].all(axis=1)
-        rho = (np.log(lit_rgb[positive][:, [0, 2]] / shadow_rgb[positive][:, [0, 2]])
-               - np.log(lit_env[positive][:, [0, 2]] / shadow_env[positive][:, [0, 2]]))
-        warm.append(rho[:, 0] - rho[:, 1])
+        # the warmth: log rho in red and blue at the samples only (not whole-image copies)
+        red_blue = [0, 2]
+        rb = [np.asarray(view.image[y, x][:, red_blue], dtype=np.float64) for y, x in ((ly, lx), (ys, xs))]
+        rb += [np.asarray(q.sky[y, x][:, red_blue], dtype=np.float64) + q.indirect[y, x][:, red_blue]
+               for y, x in ((ly, lx), (ys, xs))]
+        lit_i, shadow_i, lit_e, shadow_e = rb
+        positive = np.logical_and.reduce([(a > 0).all(axis=1) for a in rb])
+        log_rho = (np.log(lit_i[positive] / shadow_i[positive])
+                   - np.log(lit_e[positive] / shadow_e[positive]))
+        warm.append(log_rho[:, 0] - log_rho[:, 1])
     logs = np.concatenate(logs) if logs else np.zeros(0)
     if len(logs) == 0:
-        return SunContrast(float("nan"), np.full(3, np.nan), 0)
+        return SunContrast(float("nan"), np.full(3, np.nan), 0, float("nan"))
     quartiles = np.exp(np.percentile(logs, [25, 50, 75]))
     warm = np.concatenate(warm)
-    warmth = float(np.median(warm)) if len(warm) else float("nan")
+    warmth = float(np.median(warm)) if len(warm) else float("nan")  # every sample non-positive in R or B
     return SunContrast(float(quartiles[2]), quartiles, len(logs), warmth)

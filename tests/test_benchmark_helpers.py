@@ -9,20 +9,13 @@ from __future__ import annotations
 
 import json
 import math
-import sys
-from pathlib import Path
 
+import bench_pareto  # benchmarks/ is on pytest's pythonpath (pyproject.toml)
+import bench_stability
 import numpy as np
 import pytest
 
-import mvintrinsic  # noqa: F401  (loads libusb before open3d)
 from mvintrinsic import Proxy, Sun
-
-BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
-sys.path.insert(0, str(BENCHMARKS))
-
-import bench_pareto  # noqa: E402
-import bench_stability  # noqa: E402
 
 
 def test_pareto_front_keeps_the_points_nothing_beats_on_both_axes():

@@ -375,14 +375,15 @@ def test_step4_choice_counts_cast_shadow_boundaries_only():
     labels[:, 30:] = 0  # a vertical shadow boundary, 40 boundary pixels
     cosine = np.full((40, 60), 0.7)
     layers = {"a": SimpleNamespace(shadow_labels=labels)}
-    cast = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=cosine)})
+    cast = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=cosine)}, views=2)
     assert cast.choice == "run" and cast.measures["boundary_pixels"] == 40 and cast.measures["attached_pixels"] == 0
     # the shadow side turned away from the sun: a crease (attached shadow), not a cast shadow
     turned = np.where(np.arange(60) >= 30, 0.05, 0.7)[None, :].repeat(40, axis=0)
-    crease = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)})
+    crease = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=2)
     assert crease.choice == "fusion only" and crease.measures["boundary_pixels"] == 0
     assert crease.measures["attached_pixels"] == 40
-    paper = pipeline._choose_step4(layers, EnvRefineConfig(method="paper"), {"a": SimpleNamespace(cosine=turned)})
+    paper = pipeline._choose_step4(layers, EnvRefineConfig(method="paper"), {"a": SimpleNamespace(cosine=turned)},
+                                   views=2)
     assert paper.choice == "skipped"
     single = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=1)
     assert single.choice == "skipped"
@@ -391,13 +392,10 @@ def test_step4_choice_counts_cast_shadow_boundaries_only():
 def test_cast_shadow_choice_from_the_proxys_shadow_edges(demo_scene):
     from types import SimpleNamespace
 
-    from mvintrinsic.results import ModelChoice
-
     views = demo_scene.views[:2]
     scene = Scene(views, demo_scene.proxy, demo_scene.sun, demo_scene.up)
     size = sum(np.sqrt(v.shape[0] * v.shape[1]) for v in views)
-    few = ModelChoice("direct sun", "", {"edge_samples": int(0.1 * pipeline.EDGE_BAND * size)})
-    many = ModelChoice("direct sun", "", {"edge_samples": int(1.3 * pipeline.EDGE_BAND * size)})
+    few, many = int(0.1 * pipeline.EDGE_BAND * size), int(1.3 * pipeline.EDGE_BAND * size)  # edge samples
     shape = views[0].shape
 
     def quantities(shadowed: float):

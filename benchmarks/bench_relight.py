@@ -64,6 +64,11 @@ row (e)'s distance to row (c) a better caster could close, and how much is the l
 the rays shot from the proxy's receiver points (:func:`receivers_scene`): what no caster built on
 this proxy's receivers can exceed, i.e. how much of row (d)'s distance to row (c) is the caster's.
 
+``--proxy-loss`` only scores rows (a), (c), (d) and (e) again on better proxies than the scene's
+(:func:`proxy_variant`: less foliage and thin-structure loss, a fusion of exact depth maps, the
+exact mesh and its part the views see): what the caster needs of the proxy. ``--proxy-variant``
+picks some of them and ``--update`` merges them into an existing ``--out``.
+
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``.
@@ -74,11 +79,15 @@ Run with the package importable; the demo takes about 30 s on 2 cores (9 s of it
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
+import json
 import os
 import platform
 import sys
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -556,7 +565,34 @@ def bounds_scene(folder: Path) -> dict:
     return out
 
 
-RECEIVER_ROWS = ("input", "gt_mesh", "gt_caster", "exact_at_proxy", "exact_at_proxy_far", "exact_at_proxy_far_and_caster")
+RECEIVER_ROWS = ("input", "gt_mesh", "gt_caster", "gt_caster_exact_receivers", "exact_at_proxy", "exact_at_proxy_far",
+                 "exact_at_proxy_far_and_caster")
+
+
+@contextlib.contextmanager
+def _exact_receivers(scene, mesh: MeshShadow):
+    """Within the block, :class:`Relighter` places every pixel's receiver on the exact mesh (an oracle).
+
+    ``mvintrinsic.relight.receiver_points`` is swapped for one returning the exact mesh's point of
+    the view whose camera it is given (the proxy's where the exact mesh has none); the proxy
+    still gives the normals, the caster distances and the completion.
+    """
+    import mvintrinsic.relight as module
+
+    original = module.receiver_points
+    by_center = [(v.camera.center, v.stem) for v in scene.views]
+
+    def exact(camera, depth):
+        points = original(camera, depth)
+        stem = next(s for c, s in by_center if np.array_equal(c, camera.center))
+        ok = np.isfinite(mesh.points[stem]).all(axis=-1)
+        return np.where(ok[..., None], mesh.points[stem], points)
+
+    module.receiver_points = exact
+    try:
+        yield
+    finally:
+        module.receiver_points = original
 
 
 def receivers_scene(folder: Path) -> dict:
@@ -573,10 +609,16 @@ def receivers_scene(folder: Path) -> dict:
       (the rule row (d)'s proxy completion uses: a receiver on a noisy proxy lies centimetres in
       front of or behind the true surface, which then shades it);
     * ``exact_at_proxy_far_and_caster``: that, or row (d)'s visibility where it is darker (our
-      caster supplies the near shadows), relit with row (d)'s relighter.
+      caster supplies the near shadows), relit with row (d)'s relighter;
+    * ``gt_caster_exact_receivers``: row (d) with every receiver point on the exact mesh instead
+      (:func:`_exact_receivers`; the caster is built from and shot from them, the proxy still
+      gives its distances, the completion and the normals).
 
-    What these rows miss against row (c) no occluder can give back: it is the receivers' (and the
-    attached shadow's normals').
+    Note that the ``exact_at_proxy*`` rows test a ray's *first* hit: a receiver a few centimetres
+    inside the true surface first hits that surface from behind, so ``_far`` also loses every
+    farther occluder of that ray; ``gt_caster_exact_receivers`` is the direct measure of what the
+    receivers cost our caster.
+
     """
     scene, tags, sky_mask = _relit_scene(folder, "--receivers")
     stems = scene.stems
@@ -587,6 +629,8 @@ def receivers_scene(folder: Path) -> dict:
     ours = Relighter(truth, scene, config=config, tracer=tracer)
     plain = Relighter(truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
     mesh = MeshShadow(folder, scene)
+    with _exact_receivers(scene, mesh):
+        oracle = Relighter(truth, scene, config=config, tracer=tracer)
     every_pixel = dataclasses.replace(config, ray_stride=1)
     # The exact mesh as the proxy completion of an empty caster: the relighter's own rays, offset,
     # attached-shadow test, near-hit rule (``min_distance``) and blur, from the proxy's receivers.
@@ -606,12 +650,152 @@ def receivers_scene(folder: Path) -> dict:
         rows = {"input": inputs,
                 "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),
                 "gt_caster": ours.render(sun, visibility=caster),
+                "gt_caster_exact_receivers": oracle.render(sun),
                 "exact_at_proxy": plain.render(sun, visibility=everything),
                 "exact_at_proxy_far": plain.render(sun, visibility=far),
                 "exact_at_proxy_far_and_caster": ours.render(
                     sun, visibility={s: np.minimum(far[s], caster[s]) for s in stems})}
         out[tag] = {name: mean_psnr(rows[name], images, sky_mask)["mean"] for name in RECEIVER_ROWS}
         print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in out[tag].items()), flush=True)
+    return out
+
+
+#: The proxies of ``--proxy-loss`` (:func:`proxy_loss_scene`), from the scene's own to the exact mesh.
+PROXY_VARIANTS = ("loss 0.9", "loss 0.0", "fused exact depth", "exact seen by 2+", "exact seen by 1+", "exact")
+
+
+def _seen_part(proxy, views, min_views: int):
+    """The triangles of a mesh proxy that the centre rays of ``min_views`` or more views hit first."""
+    from mvintrinsic.scene import Proxy
+
+    tracer = Tracer(proxy)
+    count = np.zeros(len(proxy.triangles), dtype=np.int64)
+    for view in views:
+        hits = tracer.intersect(view.camera.center, view.camera.pixel_rays())
+        count[np.unique(hits.triangle[hits.hit])] += 1
+    triangles = proxy.triangles[count >= min_views]
+    used = np.unique(triangles)
+    index = np.full(len(proxy.vertices), -1, dtype=np.int64)
+    index[used] = np.arange(len(used))
+    return Proxy(vertices=proxy.vertices[used], normals=proxy.normals[used], triangles=index[triangles])
+
+
+def proxy_variant(folder: Path, scene, name: str):
+    """One proxy of :data:`PROXY_VARIANTS` for the scene rendered in ``folder``.
+
+    * ``loss L``: the scene's MVS-like proxy simulated again
+      (:func:`mvintrinsic.synth.proxy.simulate_mvs_proxy`, the scene's own ``ProxyConfig`` and
+      seed from ``gt/scene_info.json``) with its foliage and thin-structure losses
+      (``foliage_loss``, ``thin_loss``) set to ``L``, everything else unchanged; the scene's own
+      ``proxy.ply`` where ``L`` is its own;
+    * ``fused exact depth``: the same simulation without any degradation (no depth noise, holes,
+      losses, grazing-angle or edge erosion): what the TSDF fusion itself (4 cm voxels, two
+      views per voxel) keeps of the exact depth maps;
+    * ``exact``: the exact mesh (``proxy_clean.ply`` subdivided as the ``clean`` proxy of
+      ``bench_stability.py``); ``exact seen by K+``: its triangles that the pixel-centre rays of
+      at least ``K`` views hit first (what the photographs show, at the precision of the mesh).
+    """
+    from bench_stability import CLEAN_MAX_EDGE, CLEAN_RADIUS
+
+    from mvintrinsic.raytrace import subdivide
+    from mvintrinsic.synth.proxy import ProxyConfig, simulate_mvs_proxy
+
+    settings = json.loads((folder / "gt" / "scene_info.json").read_text())["config"]
+    own = ProxyConfig(**settings["proxy"])
+    if name.startswith("exact"):
+        centre = np.mean([v.camera.center for v in scene.views], axis=0)
+        exact = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centre,
+                          radius=CLEAN_RADIUS)
+        return exact if name == "exact" else _seen_part(exact, scene.views, int(name.split()[-1].rstrip("+")))
+    if name.startswith("loss "):
+        loss = float(name.split()[1])
+        if loss == own.foliage_loss == own.thin_loss:
+            return scene.proxy  # the scene's own proxy.ply
+        changes = {"foliage_loss": loss, "thin_loss": loss}
+    elif name == "fused exact depth":
+        changes = {"depth_noise": 0.0, "hole_rate": 0.0, "foliage_loss": 0.0, "thin_loss": 0.0,
+                   "grazing_angle_deg": 90.0, "edge_erosion": 0}
+    else:
+        raise ValueError(f"unknown proxy variant {name!r}; choose from {PROXY_VARIANTS}")
+    mesh = read_proxy(folder / "gt" / "mesh.ply")
+    labels = np.load(folder / "gt" / "mesh_faces.npz")["label"]
+    return simulate_mvs_proxy(mesh.vertices, mesh.triangles, labels, [v.camera for v in scene.views],
+                              config=dataclasses.replace(own, **changes), rng=settings["seed"])
+
+
+#: The proxies on which ``--proxy-loss`` also runs the full pipeline (row (e)): the scene's own and the exact mesh.
+PIPELINE_VARIANTS = ("loss 0.9", "exact")
+
+
+def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
+                     pipeline: Sequence[str] = PIPELINE_VARIANTS) -> dict:
+    """Rows (a), (c), (d) and (e) on better proxies than the scene's: what the caster needs of the proxy.
+
+    For every proxy of ``variants`` (:func:`proxy_variant`): (c) ``gt_mesh`` (the exact mesh's
+    shadow; the proxy only gives the normals of the cosine, as in row (d)), (d) ``gt_caster``
+    (the relighter's defaults) and, for the proxies named in ``pipeline``, (e) the full pipeline
+    decomposed on that proxy; and the share of the true foliage and thin surface seen in the photos that the proxy
+    retains within 10 cm (:func:`mvintrinsic.synth.proxy.label_retention`).
+    """
+    from mvintrinsic.synth.proxy import label_retention
+
+    scene, tags, sky_mask = _relit_scene(folder, "--proxy-loss")
+    stems = scene.stems
+    inputs = {v.stem: v.image for v in scene.views}
+    exact = read_proxy(folder / "gt" / "mesh.ply")
+    labels = np.load(folder / "gt" / "mesh_faces.npz")["label"]
+    truth = ground_truth_decomposition(folder, views=list(stems))
+    mesh = MeshShadow(folder, scene)
+    config = RelightConfig()
+    out = {}
+    for name in variants:
+        proxy = proxy_variant(folder, scene, name)
+        moved = dataclasses.replace(scene, proxy=proxy)
+        tracer = Tracer(proxy)
+        retained = label_retention(proxy, exact.vertices, exact.triangles, labels, [v.camera for v in scene.views])
+        entry = {"triangles": int(len(proxy.triangles)) if proxy.triangles is not None else None,
+                 "retention": {k: (float(retained[k]) if np.isfinite(retained[k]) else None)
+                               for k in ("foliage", "thin")}, "psnr": {}}
+        plain = Relighter(truth, moved, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+        ours = Relighter(truth, moved, config=config, tracer=tracer)
+        pipeline_relighter = None
+        if name in pipeline:
+            start = time.perf_counter()
+            result = decompose(moved, tracer=tracer)
+            entry["decompose_seconds"] = time.perf_counter() - start
+            pipeline_relighter = Relighter(result, moved, config=config, tracer=tracer)
+        for tag, (direction, images, _) in tags.items():
+            sun = np.asarray(direction, dtype=np.float64)
+            rows = {"input": inputs,
+                    "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),
+                    "gt_caster": ours.render(sun)}
+            if pipeline_relighter is not None:
+                rows["pipeline"] = pipeline_relighter.render(sun)
+            entry["psnr"][tag] = {row: mean_psnr(image, images, sky_mask)["mean"] for row, image in rows.items()}
+            print(f"{folder.name} {name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in entry["psnr"][tag].items()),
+                  flush=True)
+        out[name] = entry
+    return out
+
+
+def proxy_loss_summary(study: dict) -> dict:
+    """Per proxy: mean over the scenes at +-15 degrees of (c) - (d) and (e) - (a), and the worst scene's (c) - (d)."""
+    out = {}
+    for name in PROXY_VARIANTS:
+        gaps, gains = [], []
+        for scene in study.values():
+            if name not in scene:
+                continue
+            for tag in ("az+15", "az-15"):
+                rows = scene[name]["psnr"].get(tag)
+                if rows is None:
+                    continue
+                gaps.append(rows["gt_mesh"] - rows["gt_caster"])
+                if "pipeline" in rows:
+                    gains.append(rows["pipeline"] - rows["input"])
+        if gaps:
+            out[name] = {"mean_c_minus_d_at_15_deg": float(np.mean(gaps)), "max_c_minus_d_at_15_deg": float(max(gaps)),
+                         "mean_e_minus_a_at_15_deg": float(np.mean(gains)) if gains else None}
     return out
 
 
@@ -672,6 +856,12 @@ def main(argv: list[str] | None = None) -> int:
                         help="only the layers (true and pipeline) relit with ideal shadows: exact, true, best")
     parser.add_argument("--receivers", action="store_true",
                         help="only the exact mesh as the occluder, shot from the proxy's receivers (ground-truth layers)")
+    parser.add_argument("--proxy-loss", action="store_true",
+                        help="only rows (c), (d), (e) on proxies simulated with less foliage and thin-structure loss")
+    parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
+                        help="with --proxy-loss: only this proxy (repeatable); default all")
+    parser.add_argument("--update", action="store_true",
+                        help="with --proxy-loss: merge into the report at --out instead of replacing it")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
@@ -688,10 +878,20 @@ def main(argv: list[str] | None = None) -> int:
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
     studies = (("timing", "timing", time_scene), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
-               ("receivers", "receivers", receivers_scene))
+               ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene))
+    if args.proxy_variant:
+        studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
+                        if f == "proxy_loss" else (f, k, st) for f, k, st in studies)
     for flag, key, study in studies:
         if getattr(args, flag):
             report[key] = {name: study(folder) for name, folder in chosen.items()}
+            if key == "proxy_loss":
+                if args.update and args.out and args.out.is_file():
+                    merged = json.loads(args.out.read_text())[key]
+                    for name, variants in report[key].items():
+                        merged.setdefault(name, {}).update(variants)
+                    report[key] = merged
+                report["proxy_loss_summary"] = proxy_loss_summary(report[key])
             if key == "bounds":
                 report["bounds_summary"] = bounds_summary(report["bounds"])
             if key == "receivers":

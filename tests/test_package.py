@@ -88,3 +88,18 @@ def test_console_script_is_installed():
         pytest.skip("package not installed in this interpreter's environment (pip install -e .)")
     out = subprocess.run([str(script), "--version"], capture_output=True, text=True, check=True).stdout
     assert out.strip() == f"mvintrinsic {mvintrinsic.__version__}"
+
+
+def test_license_and_citation_match_the_package():
+    """LICENSE is the licence pyproject declares; CITATION.cff cites this version and the paper."""
+    import re
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    declared = tomllib.loads((root / "pyproject.toml").read_text())["project"]["license"]["text"]
+    assert declared == "BSD-3-Clause"
+    assert (root / "LICENSE").read_text().startswith("BSD 3-Clause License")
+    citation = (root / "CITATION.cff").read_text(encoding="utf-8")
+    assert re.search(r"^version: (\S+)$", citation, re.M).group(1) == mvintrinsic.__version__
+    assert re.search(r"^license: (\S+)$", citation, re.M).group(1) == declared
+    assert "doi: 10.1145/2756549" in citation  # Duchêne et al. 2015, the method

@@ -18,10 +18,26 @@ _ensure_libusb()  # before anything imports open3d; see mvintrinsic/_libusb.py
 
 from ._version import __version__  # noqa: E402
 from .camera import CAMERA_MODELS, Camera  # noqa: E402
-from .io import load_decomposition, load_scene, save_decomposition  # noqa: E402
-from .pipeline import Config, decompose  # noqa: E402
+from .env_refine import Step4Result  # noqa: E402
+from .io import demo_scene_path, load_decomposition, load_scene, save_decomposition  # noqa: E402
+from .multiview_shadows import PixelShadowLabels  # noqa: E402
+from .pipeline import (  # noqa: E402
+    Config,
+    Step3View,
+    calibrate,
+    carry_to_pixels,
+    decompose,
+    label_layers,
+    step2_layers,
+    step3,
+    step4,
+)
+from .pixels import PixelQuantities  # noqa: E402
+from .raytrace import Step1Result, Tracer, step1  # noqa: E402
+from .relight import RelightConfig, Relighter, relight  # noqa: E402
 from .results import Decomposition, IntrinsicLayers, Lighting, SkyParameters  # noqa: E402
 from .scene import Proxy, Scene, Sun, View  # noqa: E402
+from .sun_calibration import SunCalibration  # noqa: E402
 
 __all__ = [
     "CAMERA_MODELS",
@@ -30,14 +46,32 @@ __all__ = [
     "Decomposition",
     "IntrinsicLayers",
     "Lighting",
+    "PixelQuantities",
+    "PixelShadowLabels",
     "Proxy",
+    "RelightConfig",
+    "Relighter",
     "Scene",
     "SkyParameters",
+    "Step1Result",
+    "Step3View",
+    "Step4Result",
     "Sun",
+    "SunCalibration",
+    "Tracer",
     "View",
     "__version__",
+    "calibrate",
+    "carry_to_pixels",
     "decompose",
+    "demo_scene_path",
+    "label_layers",
     "load_decomposition",
     "load_scene",
+    "relight",
     "save_decomposition",
+    "step1",
+    "step2_layers",
+    "step3",
+    "step4",
 ]

@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from ._version import __version__
-from .io import DEFAULT_MAX_SIZE, ResultFolderError, SceneError, load_scene
+from .io import DEFAULT_MAX_SIZE, ResultFolderError, SceneError, demo_scene_path, load_scene
 from .pipeline import PRESETS
 from .scene import Scene
 from .skymodel import SkyFitError
@@ -125,13 +125,6 @@ def _cmd_info(args: argparse.Namespace) -> int:
     summary = scene_summary(scene)
     print(json.dumps(summary, indent=1) if args.json else _format_summary(summary))
     return 0
-
-
-def demo_scene_path() -> Path:
-    """Folder of the embedded demo scene (package data ``mvintrinsic/data/demo``)."""
-    from importlib.resources import files
-
-    return Path(str(files("mvintrinsic") / "data" / "demo"))
 
 
 MAX_SIZE_HELP = (f"downscale larger photos to this longer side in pixels (default {DEFAULT_MAX_SIZE}: a 12 MP "

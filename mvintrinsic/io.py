@@ -49,6 +49,7 @@ __all__ = [
     "ResultFolderError",
     "SceneError",
     "check_result_folder",
+    "demo_scene_path",
     "load_decomposition",
     "load_scene",
     "read_colmap",
@@ -63,6 +64,17 @@ __all__ = [
     "write_json",
     "write_proxy",
 ]
+
+
+def demo_scene_path() -> Path:
+    """Folder of the embedded demo scene (package data ``mvintrinsic/data/demo``).
+
+    A complete scene folder (``docs/formats.md``) of 6 views at 240x180 with its ground truth and
+    relit renders, so that ``load_scene(demo_scene_path())`` works after a plain ``pip install``.
+    """
+    from importlib.resources import files
+
+    return Path(str(files("mvintrinsic") / "data" / "demo"))
 
 #: Default longer side (pixels) to which :func:`load_scene` downscales larger photos: one 12 MP
 #: view then decomposes within 4 GB (benchmarks/results/memory_12mp.json, docs/real_capture.md).

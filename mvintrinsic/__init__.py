@@ -34,7 +34,9 @@ from .pipeline import (  # noqa: E402
 )
 from .pixels import PixelQuantities  # noqa: E402
 from .raytrace import Step1Result, Tracer, step1  # noqa: E402
-from .relight import RelightConfig, Relighter, relight  # noqa: E402
+# ``relight`` (the function) stays in its module: a package attribute of that name would hide the
+# module ``mvintrinsic.relight`` from ``import mvintrinsic.relight as ...``.
+from .relight import RelightConfig, Relighter  # noqa: E402
 from .results import Decomposition, IntrinsicLayers, Lighting, SkyParameters  # noqa: E402
 from .scene import Proxy, Scene, Sun, View  # noqa: E402
 from .sun_calibration import SunCalibration  # noqa: E402
@@ -68,7 +70,6 @@ __all__ = [
     "label_layers",
     "load_decomposition",
     "load_scene",
-    "relight",
     "save_decomposition",
     "step1",
     "step2_layers",

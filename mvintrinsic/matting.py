@@ -98,6 +98,8 @@ stopped at ``rtol``, up to 1.4% of a layer's range apart). Nothing is compiled a
 former pymatting and numba kernels took 38-74 s to compile on the first call after
 ``pip install``. The module changes no process-wide state.
 
+The method is the paper's [1]_ (Sec. 6.2); the Laplacian is Levin et al.'s [2]_.
+
 References
 ----------
 .. [1] S. Duchêne et al., "Multi-View Intrinsic Images of Outdoors Scenes with an Application to
@@ -469,7 +471,7 @@ def _whitened_colours(guide: np.ndarray, epsilon: float, radius: int) -> list[np
 
 
 class _GuidedLaplacian:
-    """The closed-form matting Laplacian of one guide image (Levin et al. [2]_, Eq. 12), as a stencil.
+    """The closed-form matting Laplacian of one guide image (Levin et al. 2008, Eq. 12; module references), as a stencil.
 
     ``stencils(keep, ...)`` sums the windows lying wholly inside ``keep`` only: a pixel outside
     ``keep`` takes part in no window, so it neither pulls nor separates the others.
@@ -995,7 +997,7 @@ def sun_visibility_matting(
     clusters: np.ndarray | None = None,
     config: MattingConfig | None = None,
 ) -> np.ndarray:
-    """Soft sun visibility from binary shadow labels by closed-form matting (Sec. 6.2, [2]_).
+    """Soft sun visibility from binary shadow labels by closed-form matting (Sec. 6.2; Levin et al. 2008).
 
     The trimap (module docstring): valid pixels at most ``config.trimap_radius`` from the other
     label (except the centre line of thinner regions), within ``config.visibility_cluster_width``
@@ -1059,7 +1061,7 @@ def propagate(
     band: np.ndarray | None = None,
     config: MattingConfig | None = None,
 ) -> np.ndarray:
-    """Image-guided propagation of values from constraint pixels (Sec. 6.2, after Levin et al. [2]_).
+    """Image-guided propagation of values from constraint pixels (Sec. 6.2, after Levin et al. 2008).
 
     Every channel solves, over the pixels of ``mask & ~band``,
 

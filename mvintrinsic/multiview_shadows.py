@@ -69,6 +69,9 @@ Measured (``benchmarks/bench_shadows.py``, nine scenes with MVS-like proxies, 24
 0.952-0.992 against 0.497-0.903, and 6.3-7.6 s per 1000x750 view on 2 cores. The choices measured and not kept
 are in ``docs/step3.md``.
 
+Sources: the paper's per-view labelling [1]_; the graph cut of Boykov and Jolly [2]_, solved with
+Boykov and Kolmogorov's max-flow [3]_.
+
 References
 ----------
 .. [1] S. Duchêne et al., "Multi-View Intrinsic Images of Outdoors Scenes with an Application to

@@ -232,6 +232,9 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
   ``epsilon`` rule does not catch them (applied to the merged caster with every view's lit
   pixels, it removes 300 of 41676 triangles).
 
+Sources: the paper's Sec. 8 [1]_; the Preetham sky [2]_; the Rayleigh optical depth [3]_ and the air
+mass [4]_ of the "paper" sky adjustment.
+
 References
 ----------
 .. [1] S. Duchêne, C. Riant, G. Chaurasia, J. Lopez-Moreno, P.-Y. Laffont, S. Popov, A. Bousseau

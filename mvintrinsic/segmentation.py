@@ -88,6 +88,8 @@ deviation 0.135 against 0.106).
 
 Both methods are deterministic: no randomness is involved.
 
+The segmentation feeds the paper's shadow labelling [3]_.
+
 References
 ----------
 .. [1] D. Comaniciu and P. Meer, "Mean shift: a robust approach toward feature space analysis",

@@ -129,6 +129,8 @@ cross a true shadow boundary. ``L_sun`` matters little: the Step-2 value (14-67%
 was calibrated against the same ``S_env`` and does as well as the true one. (The seconds are from a
 run with another job on the second core; an idle run gave 1.07 + 0.41 s on the 1000x750 views.)
 
+The labelling is the paper's [1]_, with the cluster histograms of Chaurasia et al. [4]_.
+
 References
 ----------
 .. [1] S. Duchêne et al., "Multi-View Intrinsic Images of Outdoors Scenes with an Application to

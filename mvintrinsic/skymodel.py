@@ -24,6 +24,9 @@ float32, row ``v`` at polar angle ``θ = π (v + 0.5) / He`` from ``up``, column
 world +X, or of +Y when ``up`` is along ±X), ``y_h = up × x_h``. Colours are linear RGB with
 Rec.709 / sRGB primaries; radiance is in the images' own units.
 
+Sources: the paper [1]_; the Perez sky [2]_ in Preetham's parameterisation [3]_, fitted to images
+as Lalonde et al. do [4]_; the sRGB matrix [5]_.
+
 References
 ----------
 .. [1] S. Duchêne, C. Riant, G. Chaurasia, J. Lopez-Moreno, P.-Y. Laffont, S. Popov, A. Bousseau,

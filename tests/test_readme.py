@@ -28,6 +28,14 @@ def test_readme_blocks_use_exported_names_only():
     assert not [line for block in blocks for line in block.splitlines() if re.match(r"\s*from mvintrinsic", line)]
 
 
+def test_package_attributes_do_not_hide_its_modules():
+    """``import mvintrinsic.X as m`` gives the module X: no exported name shadows a module."""
+    import pkgutil
+
+    modules = {m.name for m in pkgutil.iter_modules(mvintrinsic.__path__)}
+    assert not modules & set(mvintrinsic.__all__), modules & set(mvintrinsic.__all__)
+
+
 def test_readme_blocks_run(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)  # the first block saves a result folder in the working directory
     namespace: dict = {}

@@ -84,6 +84,8 @@ above the horizon) are clipped to 0.
 The environment-map parameterisation is that of ``docs/conventions.md`` (see
 :meth:`ClearSky.direction_of_texel`).
 
+The aerosol phase function is Cornette and Shanks' [6]_; the colour conversion follows [8]_.
+
 References
 ----------
 .. [1] T. Nishita, T. Sirai, K. Tadamura, E. Nakamae, "Display of the Earth Taking into Account

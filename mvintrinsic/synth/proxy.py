@@ -49,6 +49,8 @@ voxels otherwise leave terraces; the voxel grid is offset by :data:`GRID_OFFSET`
 planes at round coordinates do not fall on voxel centres; and vertices and triangles are put in
 a canonical order, so a seed gives the same arrays whatever the thread scheduling.
 
+The paper's input geometry [1]_; the fusion is Curless and Levoy's [2]_.
+
 References
 ----------
 .. [1] S. Duchêne, C. Riant, G. Chaurasia, J. Lopez-Moreno, P.-Y. Laffont, S. Popov, A. Bousseau

@@ -34,6 +34,7 @@ from .pipeline import (  # noqa: E402
 )
 from .pixels import PixelQuantities  # noqa: E402
 from .raytrace import Step1Result, Tracer, step1  # noqa: E402
+
 # ``relight`` (the function) stays in its module: a package attribute of that name would hide the
 # module ``mvintrinsic.relight`` from ``import mvintrinsic.relight as ...``.
 from .relight import RelightConfig, Relighter  # noqa: E402

@@ -63,14 +63,10 @@ Everything pooled over views runs in stem order, so the labels do not depend on 
 the views are given. The per-pixel most probable visibility of the last palette is returned too
 (:attr:`PixelShadowLabels.visibility`).
 
-Measured (``benchmarks/bench_shadows.py``, nine scenes with MVS-like proxies, 240x180 to
-1000x750, Step 1's smoothed normals and sky test): balanced error 0.073-0.150 against the paper's
-0.192-0.340 (0.36-0.50 of it), shadow recall 0.81-0.95 against 0.39-0.77, cross-view agreement
-0.952-0.992 against 0.497-0.903, and 6.3-7.6 s per 1000x750 view on 2 cores. The choices measured and not kept
-are in ``docs/step3.md``.
+Measured on nine scenes (``benchmarks/bench_shadows.py``; figures and the choices not kept in
+``docs/step3.md``): balanced error 0.073-0.150 against the paper's 0.192-0.340.
 
-Sources: the paper's per-view labelling [1]_; the graph cut of Boykov and Jolly [2]_, solved with
-Boykov and Kolmogorov's max-flow [3]_.
+Sources: the paper's labelling [1]_, Boykov and Jolly's Potts weights [2]_, their max-flow [3]_.
 
 References
 ----------

@@ -94,40 +94,8 @@ are :attr:`ShadowLabels.undetermined`.
 
 Measured
 --------
-``benchmarks/bench_shadow_mrf.py`` on the demo, ``dev_courtyard``, the synthetic courtyard seed 1
-and street seed 0 and the 1000x750 courtyard (``benchmarks/results/shadow_mrf.json``, 2 cores, load
-1.1-1.5): balanced error rate of the shadow labels against the true sun visibility, mean over views,
-with the defaults:
-
-=========================  =======  ======  =======  =====  =====  ============  ===============
-scene                      Step-2   true    exact    proxy  floor  undetermined  seconds per
-                           L_sun    L_sun   shading  ~v            (Step-2 L)    view (segment
-                                                                                 + MRF)
-=========================  =======  ======  =======  =====  =====  ============  ===============
-demo, 240x180              0.302    0.324   0.324    0.407  0.116  17%           0.08 + 0.02
-dev_courtyard, 320x240     0.223    0.214   0.151    0.317  0.059  47%           0.11 + 0.04
-courtyard seed 1, 240x180  0.337    0.333   0.326    0.329  0.117  34%           0.07 + 0.02
-street seed 0, 240x180     0.316    0.360   0.307    0.308  0.119  35%           0.07 + 0.02
-courtyard, 1000x750        0.217    0.218   0.159    0.293  0.040  15%           1.46 + 0.56
-=========================  =======  ======  =======  =====  =====  ============  ===============
-
-*floor*: the smallest BER any labelling of the clusters can reach
-(:func:`mvintrinsic.metrics.balanced_error_floor`; the per-cluster majority vote scores 0.18,
-0.067, 0.21, 0.18 and 0.061); *exact shading*: ``S_sky + S_ind`` and ``cos w_sun`` from the
-renderer's ground truth with the true ``L_sun``; *undetermined*: pixels whose label Eq. 7 leaves
-to the tie-break. The labels beat the proxy by 25-30% on the demo, dev_courtyard and the 1000x750
-courtyard, not on the two other synthetic scenes, and stay far from a BER of 0.08: (1) the clusters
-straddle fine shadows: at 240x180 no labelling of the paper's clusters (50-px minimum region) gets
-below 0.10 on any view of the demo, courtyard seed 1 or street seed 0; (2) Step 1's ``S_env``
-misplaces the per-cluster reflectances (median ``|log|`` error of ``R(0)`` on shadowed clusters
-0.24; 0.02-0.05 with exact shading), so few clusters get a unary decision (dev_courtyard: 186
-shadow and 195 lit seeds for 5310 clusters, against 773 and 2797 with exact shading) and Eq. 7
-leaves much of the image to the tie-break; (3) even with exact shading the minimum of Eq. 7 is not
-the truth (the cluster-majority truth costs 3-5% more): the single nearest cluster in
-``min(D_00, D_11)`` is joined by a strong edge however far it is, and about a tenth of these edges
-cross a true shadow boundary. ``L_sun`` matters little: the Step-2 value (14-67% off per channel)
-was calibrated against the same ``S_env`` and does as well as the true one. (The seconds are from a
-run with another job on the second core; an idle run gave 1.07 + 0.41 s on the 1000x750 views.)
+Balanced error of the labels, their floor and speed on five scenes: ``docs/notes/shadow_mrf.md``
+(``benchmarks/bench_shadow_mrf.py``, ``benchmarks/results/shadow_mrf.json``).
 
 The labelling is the paper's [1]_, with the cluster histograms of Chaurasia et al. [4]_.
 

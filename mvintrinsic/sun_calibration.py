@@ -136,7 +136,7 @@ class SunConfig:
         ``"auto"`` with direct sun: the views hold no cast shadow when the proxy's cast shadow
         covers less than ``min_shadow_share`` of the sunward pixels and its edges in view are
         shorter than ``min_shadow_edge`` view sizes (``sqrt(H W)``) per view
-        (:func:`mvintrinsic.pipeline.choose_cast_shadows`); then every pixel is lit. Measured on
+        (:func:`mvintrinsic.model_choice.choose_cast_shadows`); then every pixel is lit. Measured on
         a street rendered without occluders: 0.74% and 0.10; on nine sunny scenes 2.3-17.7% and
         0.32-14 (the demo the least: 2.3%, and 0.32 at 240x180, 1.29 at 480x360).
     """

@@ -11,7 +11,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from mvintrinsic import Config, Scene, View, decompose, load_decomposition, load_scene, pipeline
+from mvintrinsic import Config, Scene, View, decompose, load_decomposition, load_scene, model_choice, pipeline
 from mvintrinsic.cli import demo_scene_path, main
 from mvintrinsic.env_refine import EnvRefineConfig
 from mvintrinsic.pipeline import carry_to_pixels
@@ -375,17 +375,17 @@ def test_step4_choice_counts_cast_shadow_boundaries_only():
     labels[:, 30:] = 0  # a vertical shadow boundary, 40 boundary pixels
     cosine = np.full((40, 60), 0.7)
     layers = {"a": SimpleNamespace(shadow_labels=labels)}
-    cast = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=cosine)}, views=2)
+    cast = model_choice.choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=cosine)}, views=2)
     assert cast.choice == "run" and cast.measures["boundary_pixels"] == 40 and cast.measures["attached_pixels"] == 0
     # the shadow side turned away from the sun: a crease (attached shadow), not a cast shadow
     turned = np.where(np.arange(60) >= 30, 0.05, 0.7)[None, :].repeat(40, axis=0)
-    crease = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=2)
+    crease = model_choice.choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=2)
     assert crease.choice == "fusion only" and crease.measures["boundary_pixels"] == 0
     assert crease.measures["attached_pixels"] == 40
-    paper = pipeline._choose_step4(layers, EnvRefineConfig(method="paper"), {"a": SimpleNamespace(cosine=turned)},
+    paper = model_choice.choose_step4(layers, EnvRefineConfig(method="paper"), {"a": SimpleNamespace(cosine=turned)},
                                    views=2)
     assert paper.choice == "skipped"
-    single = pipeline._choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=1)
+    single = model_choice.choose_step4(layers, EnvRefineConfig(), {"a": SimpleNamespace(cosine=turned)}, views=1)
     assert single.choice == "skipped"
 
 
@@ -395,7 +395,7 @@ def test_cast_shadow_choice_from_the_proxys_shadow_edges(demo_scene):
     views = demo_scene.views[:2]
     scene = Scene(views, demo_scene.proxy, demo_scene.sun, demo_scene.up)
     size = sum(np.sqrt(v.shape[0] * v.shape[1]) for v in views)
-    few, many = int(0.1 * pipeline.EDGE_BAND * size), int(1.3 * pipeline.EDGE_BAND * size)  # edge samples
+    few, many = int(0.1 * model_choice.EDGE_BAND * size), int(1.3 * model_choice.EDGE_BAND * size)  # edge samples
     shape = views[0].shape
 
     def quantities(shadowed: float):
@@ -405,12 +405,12 @@ def test_cast_shadow_choice_from_the_proxys_shadow_edges(demo_scene):
                             visibility=visibility)
         return {v.stem: q for v in views}
 
-    none = pipeline.choose_cast_shadows(scene, quantities(0.005), few)
+    none = model_choice.choose_cast_shadows(scene, quantities(0.005), few)
     assert none.choice == "no cast shadow" and none.measures["shadow_edge"] == pytest.approx(0.1, abs=1e-2)
     assert none.measures["shadow_share"] == pytest.approx(1 / 180, abs=1e-9)  # one row of 180
     # either figure alone keeps the shadows: a large shadow with short edges, or long edges
-    assert pipeline.choose_cast_shadows(scene, quantities(0.2), few).choice == "cast shadows"
-    assert pipeline.choose_cast_shadows(scene, quantities(0.005), many).choice == "cast shadows"
+    assert model_choice.choose_cast_shadows(scene, quantities(0.2), few).choice == "cast shadows"
+    assert model_choice.choose_cast_shadows(scene, quantities(0.005), many).choice == "cast shadows"
     with pytest.raises(ValueError, match="min_shadow_edge"):
         SunConfig(min_shadow_edge=-1.0)
 

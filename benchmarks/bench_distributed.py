@@ -101,7 +101,7 @@ def warm_up(client) -> float:
     """Decompose two demo views with few rays (imports, numba caches; the workers too). Seconds."""
     from mvintrinsic import Config, Scene, decompose, load_scene
     from mvintrinsic.cli import demo_scene_path
-    from mvintrinsic.raytrace import Step1Config
+    from mvintrinsic.env_shading import Step1Config
 
     demo = load_scene(demo_scene_path())
     start = time.perf_counter()

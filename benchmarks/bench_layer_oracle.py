@@ -39,11 +39,12 @@ import numpy as np
 import mvintrinsic
 from mvintrinsic import Config, decompose
 from mvintrinsic.correspondence import cross_view_reflectance_spread
+from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import env_shading_error, evaluate, read_ground_truth
 from mvintrinsic.image_model import total_shading
 from mvintrinsic.io import load_scene, save_decomposition, write_json
 from mvintrinsic.pipeline import carry_to_pixels
-from mvintrinsic.raytrace import Tracer, step1
+from mvintrinsic.raytrace import Tracer
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -40,20 +40,12 @@ from bench_step1_accuracy import clean_proxy, hosek_sky, scenes
 
 import mvintrinsic
 from mvintrinsic import Scene
+from mvintrinsic.env_shading import environment_shading, fill_unseen, ray_radiance, step1
 from mvintrinsic.evaluation import read_ground_truth, read_ground_truth_lighting
 from mvintrinsic.image_model import sun_radiance_from_pair
 from mvintrinsic.io import load_scene, write_json
 from mvintrinsic.pipeline import Config, calibrate, carry_to_pixels
-from mvintrinsic.raytrace import (
-    Tracer,
-    cosine_hemisphere,
-    environment_shading,
-    fill_unseen,
-    interpolate_points,
-    ray_radiance,
-    step1,
-    voxel_subsample,
-)
+from mvintrinsic.raytrace import Tracer, cosine_hemisphere, interpolate_points, voxel_subsample
 from mvintrinsic.skymodel import direction_to_texel, envmap_directions
 
 #: Hemisphere rays per point in part 2 (Step 1's default count).

@@ -97,11 +97,12 @@ from scipy import ndimage
 import mvintrinsic
 from mvintrinsic import Config, decompose
 from mvintrinsic.correspondence import cross_view_agreement
+from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import ground_truth_decomposition, read_ground_truth
 from mvintrinsic.io import load_scene, read_image, read_proxy, read_scene_json, write_json
 from mvintrinsic.metrics import psnr
 from mvintrinsic.pipeline import carry_to_pixels
-from mvintrinsic.raytrace import Tracer, step1
+from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import (
     SKY_ADJUSTMENTS,
     Caster,

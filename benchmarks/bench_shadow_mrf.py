@@ -4,7 +4,7 @@
                                           [--out benchmarks/results/shadow_mrf.json]
 
 Scenes: the embedded demo and ``../shared/datasets/dev_courtyard`` unless ``--scene`` is given
-(repeatable). Each scene runs Step 1 (``raytrace.step1``), the per-pixel quantities and Step 2
+(repeatable). Each scene runs Step 1 (``env_shading.step1``), the per-pixel quantities and Step 2
 (``pipeline.calibrate``) once, then for every view:
 
 * seconds of the segmentation (``segmentation.segment``, defaults, mask = valid pixels) and of
@@ -46,10 +46,11 @@ import numpy as np
 
 import mvintrinsic
 from mvintrinsic.cli import demo_scene_path
+from mvintrinsic.env_shading import step1
 from mvintrinsic.io import load_scene, read_image, write_json
 from mvintrinsic.metrics import balanced_error_floor, balanced_error_rate
 from mvintrinsic.pipeline import calibrate, carry_to_pixels
-from mvintrinsic.raytrace import Tracer, step1
+from mvintrinsic.raytrace import Tracer
 from mvintrinsic.results import SHADOW_LABELS
 from mvintrinsic.segmentation import segment
 from mvintrinsic.shadow_mrf import UNARY_RULES, ShadowConfig, label_shadows

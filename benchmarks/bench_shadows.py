@@ -68,12 +68,13 @@ from scipy import ndimage
 import mvintrinsic
 from mvintrinsic import Config, decompose
 from mvintrinsic.correspondence import cross_view_agreement
+from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import evaluate, read_ground_truth
 from mvintrinsic.io import load_scene, save_decomposition, write_json
 from mvintrinsic.metrics import balanced_error_rate
 from mvintrinsic.multiview_shadows import MultiViewShadowConfig, label_shadows_multiview
 from mvintrinsic.pipeline import carry_to_pixels
-from mvintrinsic.raytrace import Tracer, step1
+from mvintrinsic.raytrace import Tracer
 from mvintrinsic.results import SHADOW_LABELS
 from mvintrinsic.shadow_mrf import ShadowConfig
 

@@ -38,10 +38,11 @@ from bench_step1_accuracy import CLEAN_MAX_EDGE, CLEAN_RADIUS, scenes
 
 import mvintrinsic
 from mvintrinsic import Scene
+from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import evaluate, read_ground_truth_lighting
 from mvintrinsic.io import load_scene, read_image, read_proxy, save_decomposition, write_json
 from mvintrinsic.pipeline import Config, calibrate, carry_to_pixels, decompose, step2_layers
-from mvintrinsic.raytrace import Tracer, step1, subdivide
+from mvintrinsic.raytrace import Tracer, subdivide
 from mvintrinsic.results import Decomposition, Lighting
 
 SCORES = ("lmse_reflectance", "lmse_shading", "lmse_score", "si_mse_reflectance", "si_mse_shading", "ber",

@@ -43,6 +43,7 @@ import mvintrinsic
 from mvintrinsic import Config, decompose
 from mvintrinsic.correspondence import cross_view_reflectance_spread
 from mvintrinsic.env_refine import EnvRefineConfig
+from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import (
     env_shading_error,
     evaluate,
@@ -52,7 +53,7 @@ from mvintrinsic.evaluation import (
 )
 from mvintrinsic.io import load_scene, save_decomposition, write_json
 from mvintrinsic.pipeline import calibrate, carry_to_pixels, step4
-from mvintrinsic.raytrace import Tracer, step1
+from mvintrinsic.raytrace import Tracer
 from mvintrinsic.sun_calibration import SunCalibrationError
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "baselines"))

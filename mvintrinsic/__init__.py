@@ -19,6 +19,7 @@ _ensure_libusb()  # before anything imports open3d; see mvintrinsic/_libusb.py
 from ._version import __version__  # noqa: E402
 from .camera import CAMERA_MODELS, Camera  # noqa: E402
 from .env_refine import Step4Result  # noqa: E402
+from .env_shading import Step1Result, step1  # noqa: E402
 from .io import demo_scene_path, load_decomposition, load_scene, save_decomposition  # noqa: E402
 from .multiview_shadows import PixelShadowLabels  # noqa: E402
 from .pipeline import (  # noqa: E402
@@ -33,7 +34,7 @@ from .pipeline import (  # noqa: E402
     step4,
 )
 from .pixels import PixelQuantities  # noqa: E402
-from .raytrace import Step1Result, Tracer, step1  # noqa: E402
+from .raytrace import Tracer  # noqa: E402
 
 # ``relight`` (the function) stays in its module: a package attribute of that name would hide the
 # module ``mvintrinsic.relight`` from ``import mvintrinsic.relight as ...``.

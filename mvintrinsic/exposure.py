@@ -32,7 +32,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ._validation import config_or_default, is_real
-from .raytrace import Tracer, vertex_observations
+from .env_shading import vertex_observations
+from .raytrace import Tracer
 from .results import IntrinsicLayers, ViewGains
 from .scene import Scene, View
 
@@ -57,7 +58,7 @@ class ExposureConfig:
         a safety factor, and below what changes the decomposition measurably.
     depth_tolerance : float
         Occlusion test of the vertex samples, relative depth (as Step 1's
-        :attr:`~mvintrinsic.raytrace.Step1Config.depth_tolerance`).
+        :attr:`~mvintrinsic.env_shading.Step1Config.depth_tolerance`).
     min_relative_value : float
         Samples darker than this fraction of their view's median sample (per channel) are left
         out: their relative noise and JPEG quantisation are large, and the log amplifies them.
@@ -153,7 +154,7 @@ def estimate_view_gains(
 
     Notes
     -----
-    The samples are those of Step 1's vertex radiance (:func:`~mvintrinsic.raytrace.vertex_observations`):
+    The samples are those of Step 1's vertex radiance (:func:`~mvintrinsic.env_shading.vertex_observations`):
     vertex projections that pass the occlusion test and fall on valid (unsaturated) pixels.
     """
     config = config_or_default(config, ExposureConfig)

@@ -12,9 +12,9 @@ labelling instead (a colour segmentation and the MRF of Eq. 7, :mod:`mvintrinsic
 ``R = I / (S_env + ~v S_sun)`` (Eq. 2 with the proxy visibility). Every stage is also a public
 function, so a pipeline can be composed by hand::
 
-    from mvintrinsic import pipeline, raytrace
+    from mvintrinsic import env_shading, pipeline, raytrace
     tracer = raytrace.Tracer(scene.proxy)
-    s1 = raytrace.step1(scene, tracer=tracer)
+    s1 = env_shading.step1(scene, tracer=tracer)
     quantities = pipeline.carry_to_pixels(scene, s1, tracer)
     calibration = pipeline.calibrate(scene, quantities)
     layers = {v.stem: pipeline.step2_layers(v, quantities[v.stem], calibration.sun_radiance) for v in scene.views}
@@ -46,6 +46,7 @@ from ._cluster import _as_client, _ViewTasks
 from ._validation import config_or_default
 from .correspondence import Correspondences
 from .env_refine import EnvRefineConfig, Step4Result, refine, refine_environment
+from .env_shading import Step1Config, Step1Result, step1
 from .exposure import ExposureConfig, compensate, estimate_view_gains, restore_units
 from .matting import MattingConfig, intrinsic_layers
 from .model_choice import (
@@ -56,7 +57,7 @@ from .model_choice import (
 )
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
-from .raytrace import Step1Config, Step1Result, Tracer, depth_map, step1
+from .raytrace import Tracer, depth_map
 from .resolution import downscale_scene, upsample_layers
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, ModelChoice
 from .scene import Scene, View

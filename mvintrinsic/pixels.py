@@ -9,7 +9,7 @@ This module does the simple, documented transfer used until Step 3's image-guide
   triangle's vertex values (one primary ray per pixel, Embree);
 * a valid pixel whose ray misses the proxy, whose direction is sky in the environment map and
   whose colour is close to the sky's there (the fitted sky model's or the environment map's
-  radiance; :attr:`~mvintrinsic.raytrace.Step1Config.sky_colour_tolerance`) is sky: it carries no
+  radiance; :attr:`~mvintrinsic.env_shading.Step1Config.sky_colour_tolerance`) is sky: it carries no
   shading;
 * a valid pixel whose ray misses the proxy but does not see the sky (geometry the proxy lost,
   typically foliage) takes the values of the nearest covered pixel (Euclidean distance in the
@@ -26,8 +26,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
+from .env_shading import Step1Result
 from .image_model import clamped_cosine, sun_shading, total_shading
-from .raytrace import Step1Result, Tracer
+from .raytrace import Tracer
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import View
 

@@ -347,7 +347,7 @@ class RelightConfig:
         Standard deviation (metres) of the smoothing of the proxy's vertex normals that give the
         receivers' ``max(0, cos w_sun)`` and the proxy's sun visibility at the new sun
         (:func:`mvintrinsic.raytrace.smooth_normals`); >= 0, 0: the proxy's own normals. Not in
-        the paper; 0.4 as Step 1's :attr:`~mvintrinsic.raytrace.Step1Config.normal_smoothing`,
+        the paper; 0.4 as Step 1's :attr:`~mvintrinsic.env_shading.Step1Config.normal_smoothing`,
         so that the relit ``S_sun`` uses the normals the decomposition used.
     sky : {"model", "paper"}
         How the environment shading follows the sun (:data:`SKY_ADJUSTMENTS`, module docstring,

@@ -17,7 +17,7 @@ import pytest
 
 from mvintrinsic import Config, Scene, decompose, load_scene
 from mvintrinsic.cli import demo_scene_path, main
-from mvintrinsic.raytrace import Step1Config
+from mvintrinsic.env_shading import Step1Config
 from mvintrinsic.relight import RelightConfig, Relighter, relight
 
 #: Step 1 with few rays: identity does not depend on Step 1's accuracy, and the test stays fast.

@@ -174,7 +174,7 @@ def test_the_imitation_decomposes_with_default_settings(capture, tmp_path):
     lighting = result.lighting
     assert lighting.horizon_evidence == "up"
     assert lighting.exposure.applied
-    from mvintrinsic.raytrace import step1
+    from mvintrinsic.env_shading import step1
 
     reason = step1(scene, rng=0).horizon.reason  # the demo's cameras look slightly down: near up
     assert "no near-horizontal plane" in reason and int(reason.split("mean up axis is ")[1].split("°")[0]) < 30

@@ -14,8 +14,9 @@ import pytest
 from mvintrinsic import Config, Scene, View, decompose, load_decomposition, load_scene, model_choice, pipeline
 from mvintrinsic.cli import demo_scene_path, main
 from mvintrinsic.env_refine import EnvRefineConfig
+from mvintrinsic.env_shading import Step1Config, step1
 from mvintrinsic.pipeline import carry_to_pixels
-from mvintrinsic.raytrace import Step1Config, Tracer, depth_map, step1
+from mvintrinsic.raytrace import Tracer, depth_map
 from mvintrinsic.sun_calibration import SunCalibrationError, SunConfig
 
 RECONSTRUCTION_TOL = 1e-4  # issue 5: reflectance * shading == image on valid pixels

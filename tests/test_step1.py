@@ -9,21 +9,23 @@ import numpy as np
 import pytest
 
 from mvintrinsic import Camera, Proxy, Scene, View
-from mvintrinsic.raytrace import (
+from mvintrinsic.env_shading import (
     Step1Config,
-    Tracer,
-    cosine_hemisphere,
     environment_shading,
     fill_unseen,
+    ray_radiance,
+    step1,
+    vertex_radiance,
+)
+from mvintrinsic.raytrace import (
+    Tracer,
+    cosine_hemisphere,
     interpolate_points,
     morton_order,
     rasterize,
-    ray_radiance,
     smooth_normals,
-    step1,
     subdivide,
     sun_visibility,
-    vertex_radiance,
     voxel_subsample,
 )
 from mvintrinsic.skymodel import EnvironmentMap

@@ -23,7 +23,6 @@ from mvintrinsic.relight import (
     RelightConfig,
     Relighter,
     ShadowCaster,
-    _strided,
     as_sun_direction,
     build_caster,
     contradicted_primitives,
@@ -39,6 +38,7 @@ from mvintrinsic.relight import (
 )
 from mvintrinsic.results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from mvintrinsic.scene import Scene, Sun, View
+from mvintrinsic.shadow_caster import _strided
 from mvintrinsic.sun_position import azimuth_elevation
 
 # Tolerances, measured on this scene (numbers in the tests' comments).

@@ -41,12 +41,12 @@ from bench_step1_accuracy import clean_proxy, hosek_sky, scenes
 import mvintrinsic
 from mvintrinsic import Scene
 from mvintrinsic.env_shading import environment_shading, fill_unseen, ray_radiance, step1
+from mvintrinsic.envmap import direction_to_texel, envmap_directions
 from mvintrinsic.evaluation import read_ground_truth, read_ground_truth_lighting
 from mvintrinsic.image_model import sun_radiance_from_pair
 from mvintrinsic.io import load_scene, write_json
 from mvintrinsic.pipeline import Config, calibrate, carry_to_pixels
 from mvintrinsic.raytrace import Tracer, cosine_hemisphere, interpolate_points, voxel_subsample
-from mvintrinsic.skymodel import direction_to_texel, envmap_directions
 
 #: Hemisphere rays per point in part 2 (Step 1's default count).
 RAYS = 64

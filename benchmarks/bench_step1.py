@@ -31,9 +31,9 @@ import numpy as np
 
 import mvintrinsic
 from mvintrinsic.env_shading import Step1Config, environment_shading, vertex_radiance
+from mvintrinsic.environment import estimate_environment, horizon_plane
 from mvintrinsic.io import load_scene, write_json
 from mvintrinsic.raytrace import Tracer, depth_map, interpolate_points, rasterize, voxel_subsample
-from mvintrinsic.skymodel import estimate_environment, horizon_plane
 
 DEFAULT_SCENE = Path(__file__).resolve().parents[2] / "data" / "courtyard16"
 REFERENCE_RAYS = 256

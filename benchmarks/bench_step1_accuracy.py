@@ -48,10 +48,11 @@ import numpy as np
 import mvintrinsic
 from mvintrinsic import Scene
 from mvintrinsic.env_shading import Step1Config, environment_shading, step1
+from mvintrinsic.environment import EnvironmentMap
+from mvintrinsic.envmap import envmap_directions, texel_solid_angles
 from mvintrinsic.evaluation import env_shading_error, umbra_mask, visibility_error
 from mvintrinsic.io import load_scene, read_proxy, write_json
 from mvintrinsic.raytrace import Tracer, interpolate_points, rasterize, subdivide, voxel_subsample
-from mvintrinsic.skymodel import EnvironmentMap, envmap_directions, texel_solid_angles
 
 ROOT = Path(__file__).resolve().parents[2]
 SYNTH = {"courtyard_s1": ("courtyard", 1), "street_s0": ("street", 0)}

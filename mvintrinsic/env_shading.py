@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._validation import is_real
+from .environment import EnvironmentMap, HorizonPlane, estimate_environment, find_horizon
 from .image_model import clamped_cosine
 from .raytrace import (
     RayHits,
@@ -33,7 +34,7 @@ from .raytrace import (
     voxel_subsample,
 )
 from .scene import Scene, View
-from .skymodel import EnvironmentMap, HorizonPlane, SkyConfig, SkyModel, estimate_environment, find_horizon
+from .skymodel import SkyConfig, SkyModel
 
 __all__ = [
     "ATTENUATION_MODES",
@@ -534,7 +535,7 @@ def step1(
     """Step 1 of the paper (Sec. 4): environment map, sky model, ``S_sky``, ``S_ind`` and ``~v``.
 
     1. horizon: the main horizontal plane of the proxy (RANSAC), or, when it has none, the
-       scene's up vector (:func:`~mvintrinsic.skymodel.find_horizon`, ``SkyConfig.horizon``);
+       scene's up vector (:func:`~mvintrinsic.environment.find_horizon`, ``SkyConfig.horizon``);
     2. coverage: camera rays of every view against the proxy; the valid pixels they miss are
        splatted into a partial environment map (median over views);
     3. sky: colour sky detector above the horizon, Preetham sky fit (Eq. 4), completion of the

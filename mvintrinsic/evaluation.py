@@ -743,9 +743,9 @@ def umbra_mask(
     SceneError
         ``gt/mesh.ply`` missing, or no ground-truth sun direction (only clicks).
     """
+    from .envmap import horizontal_frame
     from .io import load_scene, read_proxy
     from .raytrace import Tracer
-    from .skymodel import horizontal_frame
 
     if isinstance(samples, bool) or not isinstance(samples, int) or samples < 1:
         raise ValueError(f"samples must be a positive integer, got {samples!r}")

@@ -30,8 +30,9 @@ import numpy as np
 
 from ._validation import as_unit_vector, is_real
 from .caster import _check_sun
+from .envmap import envmap_directions, horizontal_frame, texel_solid_angles
 from .image_model import LUMINANCE_WEIGHTS
-from .skymodel import envmap_directions, horizontal_frame, preetham_relative_rgb, texel_solid_angles
+from .skymodel import preetham_relative_rgb
 
 __all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "SKY_GRID_HEIGHT", "SKY_RATIO_FLOOR", "paper_environment_factors", "sky_irradiance_ratio"]
 
@@ -95,7 +96,7 @@ class _SphereLookup:
     """Bilinear interpolation of an equirectangular full-sphere table at fixed directions.
 
     The table's texel ``(v, u)`` is at polar angle ``pi (v + 0.5) / He`` from ``up`` and azimuth
-    ``2 pi (u + 0.5) / (2 He)`` (:func:`~mvintrinsic.skymodel.envmap_directions`); columns wrap,
+    ``2 pi (u + 0.5) / (2 He)`` (:func:`~mvintrinsic.envmap.envmap_directions`); columns wrap,
     rows clamp at the poles. Indices and weights are computed once.
     """
 

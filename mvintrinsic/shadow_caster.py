@@ -83,10 +83,10 @@ from scipy import ndimage
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
 from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array, _rays
+from .envmap import horizontal_frame
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene, vertex_normals
 from .scene import Sun
-from .skymodel import horizontal_frame
 
 __all__ = ["ShadowCaster", "as_sun_direction", "receiver_depth", "receiver_normals", "receiver_points"]
 

@@ -17,9 +17,9 @@ import numpy as np
 
 from ._validation import as_array, as_unit_vector, describe
 from .camera import Camera
+from .envmap import horizontal_frame
 from .raytrace import Tracer
 from .scene import Sun
-from .skymodel import horizontal_frame
 
 __all__ = ["azimuth_elevation", "horizontal_frame", "sun_from_clicks", "sun_from_time"]
 

@@ -14,12 +14,13 @@ import pytest
 
 from mvintrinsic import Scene, View, decompose, load_decomposition, load_scene, save_decomposition
 from mvintrinsic.cli import demo_scene_path
+from mvintrinsic.environment import find_horizon, horizon_from_up
 from mvintrinsic.exposure import ExposureConfig, compensate, estimate_view_gains, restore_units
 from mvintrinsic.io import exif_orient, read_image
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import Relighter
 from mvintrinsic.results import ViewGains
-from mvintrinsic.skymodel import SkyConfig, find_horizon, horizon_from_up
+from mvintrinsic.skymodel import SkyConfig
 from mvintrinsic.synth.capture import imitate_capture
 
 GAIN_TOL = 0.01  # linear renders: measured 0.5% at most (demo, street_s0, courtyard_s1)

@@ -9,30 +9,30 @@ import numpy as np
 import pytest
 
 from mvintrinsic.camera import Camera
+from mvintrinsic.environment import (
+    EnvironmentMap,
+    PartialEnvironmentMap,
+    complete_environment_map,
+    detect_sky,
+    estimate_environment,
+    fill_by_diffusion,
+    horizon_plane,
+    partial_environment_map,
+)
+from mvintrinsic.envmap import direction_to_texel, envmap_directions, texel_solid_angles
 from mvintrinsic.results import SkyParameters
 from mvintrinsic.scene import View
 from mvintrinsic.skymodel import (
     SKY_MODELS,
-    EnvironmentMap,
-    PartialEnvironmentMap,
     SkyConfig,
     SkyFitError,
     SkyModel,
-    complete_environment_map,
-    detect_sky,
-    direction_to_texel,
-    envmap_directions,
-    estimate_environment,
-    fill_by_diffusion,
     fit_sky,
-    horizon_plane,
-    partial_environment_map,
     preetham_perez_coefficients,
     preetham_relative_rgb,
     preetham_zenith_chromaticity,
     select_sky_model,
     sky_fit_outliers,
-    texel_solid_angles,
 )
 
 # Tolerances, in one place.

@@ -17,6 +17,7 @@ from mvintrinsic.env_shading import (
     step1,
     vertex_radiance,
 )
+from mvintrinsic.environment import EnvironmentMap
 from mvintrinsic.raytrace import (
     Tracer,
     cosine_hemisphere,
@@ -28,7 +29,6 @@ from mvintrinsic.raytrace import (
     sun_visibility,
     voxel_subsample,
 )
-from mvintrinsic.skymodel import EnvironmentMap
 
 MC_RAYS = 4096  # rays per point in the analytic Monte Carlo tests
 MC_TOL = 0.02  # relative; stratified sampling with 4096 rays is well inside this

@@ -713,7 +713,7 @@ class ClearSky:
         (row 0 at the zenith) and azimuth ``φ = 2π (u + 0.5) / W`` counter-clockwise seen from above
         from +X (column ``W/4 - 0.5`` looks along +Y):
         ``d = (sin θ cos φ, sin θ sin φ, cos θ)`` -- the convention of ``docs/conventions.md`` and
-        :func:`mvintrinsic.skymodel.envmap_directions`. Non-integer coordinates are allowed.
+        :func:`mvintrinsic.envmap.envmap_directions`. Non-integer coordinates are allowed.
 
         Parameters
         ----------
@@ -740,7 +740,7 @@ class ClearSky:
         rows, cols : (...) int64
             ``v = floor(θ H / π)`` clipped to ``[0, H)``, ``u = floor(φ W / 2π) mod W``.
         """
-        from ..skymodel import direction_to_texel
+        from ..envmap import direction_to_texel
 
         d = np.asarray(directions, dtype=np.float64)
         if d.shape[-1:] != (3,):

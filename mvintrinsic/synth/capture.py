@@ -34,10 +34,10 @@ import numpy as np
 from scipy import ndimage
 from scipy.spatial import ConvexHull, QhullError
 
+from ..environment import horizon_plane
 from ..io import read_colmap, read_image, read_proxy, write_colmap_text, write_image, write_json, write_proxy
 from ..preview import tonemap
 from ..scene import Proxy
-from ..skymodel import horizon_plane
 from ._geometry import area_weighted_normals
 
 __all__ = ["imitate_capture"]

@@ -23,15 +23,11 @@ import scipy.sparse as sp
 from scipy.sparse import linalg as spla
 
 from mvintrinsic.camera import Camera
+from mvintrinsic.laplacian import _dissection_order, _GuidedLaplacian, _ordered, _solve, _system
 from mvintrinsic.matting import (
     MattingConfig,
     MattingResult,
     SolveReport,
-    _dissection_order,
-    _GuidedLaplacian,
-    _ordered,
-    _solve,
-    _system,
     guide_image,
     intrinsic_layers,
     intrinsic_layers_result,

@@ -294,9 +294,10 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
 
 
 def _cmd_relight(args: argparse.Namespace) -> int:
-    from .io import _prepare_result_folder, check_result_folder, load_decomposition, write_image
+    from .io import check_result_folder, load_decomposition, write_image
     from .preview import tonemap
     from .relight import Relighter, as_sun_direction
+    from .result_folder import _prepare_result_folder
     from .sun_position import azimuth_elevation
 
     by_time = args.time is not None

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .io import import_colour, read_image, write_image
+from .files import import_colour, read_image, write_image
 from .results import Decomposition, IntrinsicLayers
 from .scene import Scene
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from mvintrinsic.envmap import direction_to_texel, envmap_directions
-from mvintrinsic.io import import_colour
+from mvintrinsic.files import import_colour
 from mvintrinsic.synth.atmosphere import MITSUBA_ENVMAP_TO_WORLD, AtmosphereConfig, clear_sky, envmap_emitter
 from mvintrinsic.synth.render import sun_vector
 

@@ -23,7 +23,7 @@ CORE_LAYERS = [
     "multiview_shadows", "laplacian", "matting", "env_refine", "model_choice", "caster", "shadow_caster", "relit_shading", "relight",
     "pipeline",
 ]
-EDGE = {"io", "metrics", "cli", "__main__", "evaluation", "preview", "__init__"}
+EDGE = {"io", "files", "result_folder", "errors", "metrics", "cli", "__main__", "evaluation", "preview", "__init__"}
 
 
 def system_has_libusb() -> bool:

@@ -361,7 +361,7 @@ def _spectral_to_rgb(wavelengths: np.ndarray) -> np.ndarray:
     ``XYZ = ∫ S(λ) cmf(λ) dλ`` (nm) with the spectrum ``S`` linear between samples and the
     CIE 1931 2° tables at 1 nm, then the IEC 61966-2-1 XYZ -> sRGB matrix.
     """
-    from ..io import import_colour
+    from ..files import import_colour
 
     colour = import_colour()
 

@@ -10,30 +10,14 @@ by pycolmap) projects here to the same pixels:
 * **Pixel coordinates** are continuous, ``(u, v)`` = (column, row), with the *top-left corner* of
   the image at ``(0, 0)``: the centre of the pixel in column ``i``, row ``j`` is at
   ``(i + 0.5, j + 0.5)`` (COLMAP's convention).
-* **Models** (parameter order as in COLMAP's ``cameras.txt``):
+* **Models**: every perspective camera model of COLMAP (:data:`CAMERA_MODELS`: the pinhole and
+  OpenCV families, the division, FOV and unified (EUCM) models and the fisheye models), with the
+  parameters in the order of COLMAP's ``cameras.txt``. Projection and unprojection are COLMAP's own
+  code, through pycolmap (``Camera.img_from_cam`` / ``cam_from_img``; the iterative undistortion
+  of distorted models included), so that no lens model is written twice; the equirectangular
+  model, which has no focal plane, is not supported.
 
-  ================  ==================================
-  SIMPLE_PINHOLE    f, cx, cy
-  PINHOLE           fx, fy, cx, cy
-  SIMPLE_RADIAL     f, cx, cy, k
-  RADIAL            f, cx, cy, k1, k2
-  OPENCV            fx, fy, cx, cy, k1, k2, p1, p2
-  ================  ==================================
-
-  All five are special cases of OPENCV: with normalised coordinates ``(x, y) = (X/Z, Y/Z)`` and
-  ``r^2 = x^2 + y^2`` the distorted coordinates are
-
-  .. math::
-
-     x_d = x (1 + k_1 r^2 + k_2 r^4) + 2 p_1 x y + p_2 (r^2 + 2 x^2)
-
-     y_d = y (1 + k_1 r^2 + k_2 r^4) + 2 p_2 x y + p_1 (r^2 + 2 y^2)
-
-  and the pixel is ``(fx x_d + cx, fy y_d + cy)`` (COLMAP ``OpenCVCameraModel``).
-
-Undistortion inverts the distortion with Newton's method (COLMAP's ``IterativeUndistortion`` uses
-the same fixed point with a numerical Jacobian; here the Jacobian is analytic and the iteration is
-vectorised). See ``docs/conventions.md``.
+See ``docs/conventions.md``.
 """
 
 from __future__ import annotations
@@ -42,60 +26,34 @@ from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
+import pycolmap
 
 from ._validation import as_array, describe
 
 __all__ = ["CAMERA_MODELS", "Camera"]
 
-#: Supported COLMAP camera models and the names of their parameters, in COLMAP's order.
-CAMERA_MODELS: dict[str, tuple[str, ...]] = {
-    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
-    "PINHOLE": ("fx", "fy", "cx", "cy"),
-    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
-    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
-    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
-}
+#: COLMAP models without a focal plane (not supported).
+_NOT_PERSPECTIVE = ("EQUIRECTANGULAR", "INVALID")
 
 
-def _distort(xy: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """Apply OPENCV distortion to normalised coordinates ``xy`` of shape (N, 2)."""
-    k1, k2, p1, p2 = dist
-    x, y = xy[:, 0], xy[:, 1]
-    r2 = x * x + y * y
-    radial = 1.0 + k1 * r2 + k2 * r2 * r2
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + 2.0 * p2 * x * y + p1 * (r2 + 2.0 * y * y)
-    return np.stack([xd, yd], axis=1)
+def _model_parameters() -> dict[str, tuple[str, ...]]:
+    names = sorted(m for m in pycolmap.CameraModelId.__members__ if m not in _NOT_PERSPECTIVE)
+    out = {}
+    for name in names:
+        camera = pycolmap.Camera.create_from_model_name(1, name, 1.0, 1, 1)
+        out[name] = tuple(p.strip() for p in camera.params_info.split(","))
+    return out
 
 
-def _undistort(xy_d: np.ndarray, dist: np.ndarray, *, max_iter: int = 50, tol: float = 1e-14) -> np.ndarray:
-    """Invert :func:`_distort` by Newton's method, vectorised over the (N, 2) points."""
-    k1, k2, p1, p2 = dist
-    xy = xy_d.copy()
-    active = np.ones(len(xy), dtype=bool)
-    for _ in range(max_iter):
-        if not active.any():
-            break
-        x, y = xy[active, 0], xy[active, 1]
-        residual = _distort(xy[active], dist) - xy_d[active]
-        r2 = x * x + y * y
-        radial = 1.0 + k1 * r2 + k2 * r2 * r2
-        # d(radial)/dx = 2x (k1 + 2 k2 r^2), same in y.
-        dr = 2.0 * (k1 + 2.0 * k2 * r2)
-        j11 = radial + x * x * dr + 2.0 * p1 * y + 6.0 * p2 * x
-        j12 = x * y * dr + 2.0 * p1 * x + 2.0 * p2 * y
-        j21 = x * y * dr + 2.0 * p2 * y + 2.0 * p1 * x
-        j22 = radial + y * y * dr + 2.0 * p2 * x + 6.0 * p1 * y
-        det = j11 * j22 - j12 * j21
-        det = np.where(np.abs(det) < 1e-300, 1e-300, det)
-        step_x = (j22 * residual[:, 0] - j12 * residual[:, 1]) / det
-        step_y = (-j21 * residual[:, 0] + j11 * residual[:, 1]) / det
-        xy[active, 0] -= step_x
-        xy[active, 1] -= step_y
-        done = np.hypot(step_x, step_y) < tol * (1.0 + np.hypot(x, y))
-        idx = np.flatnonzero(active)
-        active[idx[done]] = False
-    return xy
+#: Supported COLMAP camera models and the names of their parameters, in COLMAP's order (every
+#: perspective model of the installed COLMAP, read from pycolmap).
+CAMERA_MODELS: dict[str, tuple[str, ...]] = _model_parameters()
+
+#: Single-focal models and their two-focal twins: a view resampled with different horizontal and
+#: vertical scales needs ``fx != fy`` (:meth:`Camera.scaled`), the extra parameters padded with 0.
+_TWO_FOCAL = {"SIMPLE_PINHOLE": "PINHOLE", "SIMPLE_RADIAL": "OPENCV", "RADIAL": "OPENCV",
+              "SIMPLE_RADIAL_FISHEYE": "OPENCV_FISHEYE", "RADIAL_FISHEYE": "OPENCV_FISHEYE",
+              "SIMPLE_DIVISION": "DIVISION", "SIMPLE_FISHEYE": "FISHEYE"}
 
 
 @dataclass(frozen=True, eq=False)
@@ -129,7 +87,7 @@ class Camera:
     params: np.ndarray
     rotation: np.ndarray
     translation: np.ndarray
-    _dist: np.ndarray = field(init=False, repr=False)
+    _colmap: pycolmap.Camera = field(init=False, repr=False)
 
     #: Tolerance on ``R.T @ R - I`` accepted for the rotation.
     ROTATION_TOL: ClassVar[float] = 1e-6
@@ -153,43 +111,40 @@ class Camera:
         object.__setattr__(self, "params", params)
         object.__setattr__(self, "rotation", rotation)
         object.__setattr__(self, "translation", translation)
+        colmap = pycolmap.Camera(model=self.model, width=self.width, height=self.height, params=params.tolist())
+        object.__setattr__(self, "_colmap", colmap)
         fx, fy = self.focal
         if not (fx > 0 and fy > 0):
             raise ValueError(f"params: focal lengths must be positive, got {params.tolist()}")
-        dist = np.zeros(4)
-        values = dict(zip(CAMERA_MODELS[self.model], params, strict=True))
-        if self.model == "SIMPLE_RADIAL":
-            dist[0] = values["k"]
-        elif self.model in ("RADIAL", "OPENCV"):
-            dist[0], dist[1] = values["k1"], values["k2"]
-            dist[2], dist[3] = values.get("p1", 0.0), values.get("p2", 0.0)
-        dist.flags.writeable = False
-        object.__setattr__(self, "_dist", dist)
 
     # -- intrinsics -----------------------------------------------------------------------------
     @property
     def focal(self) -> tuple[float, float]:
         """``(fx, fy)`` in pixels."""
-        p = self.params
-        if self.model in ("PINHOLE", "OPENCV"):
-            return float(p[0]), float(p[1])
-        return float(p[0]), float(p[0])
+        return float(self._colmap.focal_length_x), float(self._colmap.focal_length_y)
 
     @property
     def principal_point(self) -> tuple[float, float]:
         """``(cx, cy)`` in pixels (continuous coordinates, top-left corner at the origin)."""
-        i = 2 if self.model in ("PINHOLE", "OPENCV") else 1
-        return float(self.params[i]), float(self.params[i + 1])
+        return float(self._colmap.principal_point_x), float(self._colmap.principal_point_y)
 
     @property
     def distortion(self) -> np.ndarray:
-        """``(k1, k2, p1, p2)``: the model's distortion written in OPENCV form, (4,) float64."""
-        return self._dist
+        """The model's distortion parameters (those after the focal lengths and principal point), (P,)."""
+        return self.params[list(self._colmap.extra_params_idxs())]
 
     @property
     def is_distorted(self) -> bool:
-        """Whether the lens model has any non-zero distortion coefficient."""
-        return bool(np.any(self._dist != 0.0))
+        """Whether pixels differ from the pinhole projection ``K (x, y, 1)`` with the same ``K``.
+
+        Tested on a grid of normalised coordinates over the image (10^-9 px): the fisheye models
+        are distorted even with zero coefficients, the OpenCV family only with non-zero ones.
+        """
+        (fx, fy), (cx, cy) = self.focal, self.principal_point
+        u, v = np.meshgrid(np.linspace(0.0, self.width, 5), np.linspace(0.0, self.height, 5))
+        xy = np.column_stack([(u.ravel() - cx) / fx, (v.ravel() - cy) / fy])
+        pinhole = np.column_stack([fx * xy[:, 0] + cx, fy * xy[:, 1] + cy])
+        return bool(np.nanmax(np.abs(self.normalized_to_pixels(xy) - pinhole)) > 1e-9)
 
     @property
     def K(self) -> np.ndarray:
@@ -245,26 +200,31 @@ class Camera:
         return self.normalized_to_pixels(xy), depth
 
     def normalized_to_pixels(self, xy: np.ndarray) -> np.ndarray:
-        """Map undistorted normalised coordinates ``(N, 2)`` to distorted pixels ``(N, 2)``."""
+        """Map undistorted normalised coordinates ``(N, 2)`` to distorted pixels ``(N, 2)``.
+
+        COLMAP's ``img_from_cam`` (pycolmap); NaN rows stay NaN.
+        """
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        if self.is_distorted:
-            xy = _distort(xy, self._dist)
-        (fx, fy), (cx, cy) = self.focal, self.principal_point
-        return np.stack([fx * xy[:, 0] + cx, fy * xy[:, 1] + cy], axis=1)
+        out = np.full((len(xy), 2), np.nan)
+        ok = np.isfinite(xy).all(axis=1)
+        if ok.any():
+            out[ok] = self._colmap.img_from_cam(np.column_stack([xy[ok], np.ones(int(ok.sum()))]))
+        return out
 
     def pixels_to_normalized(self, pixels: np.ndarray) -> np.ndarray:
         """Map distorted pixels ``(N, 2)`` to undistorted normalised coordinates ``(N, 2)``.
 
-        The inverse of :meth:`normalized_to_pixels` (Newton iterations for distorted models).
+        The inverse of :meth:`normalized_to_pixels`: COLMAP's ``cam_from_img`` (pycolmap), with its
+        iterative undistortion for distorted models; NaN where it has no solution.
         """
         pixels = np.asarray(pixels, dtype=np.float64)
         if pixels.ndim != 2 or pixels.shape[1] != 2:
             raise ValueError(f"pixels must have shape (N, 2), got shape {pixels.shape}")
-        (fx, fy), (cx, cy) = self.focal, self.principal_point
-        xy = np.stack([(pixels[:, 0] - cx) / fx, (pixels[:, 1] - cy) / fy], axis=1)
-        if self.is_distorted:
-            xy = _undistort(xy, self._dist)
-        return xy
+        out = np.full((len(pixels), 2), np.nan)
+        ok = np.isfinite(pixels).all(axis=1)
+        if ok.any():
+            out[ok] = self._colmap.cam_from_img(np.ascontiguousarray(pixels[ok]))
+        return out
 
     def undistort_pixels(self, pixels: np.ndarray) -> np.ndarray:
         """Where pixels ``(N, 2)`` of this camera land in its distortion-free pinhole twin.
@@ -317,20 +277,30 @@ class Camera:
 
         Continuous pixel coordinates scale by ``sx = width / self.width`` and
         ``sy = height / self.height`` (the image corner stays at the origin). When ``sx != sy``
-        a single-focal model cannot represent the result, so SIMPLE_PINHOLE becomes PINHOLE and
-        SIMPLE_RADIAL / RADIAL become OPENCV with the same distortion: the mapping is exact.
+        a single-focal model cannot represent the result, so it becomes its two-focal twin with the
+        same distortion (SIMPLE_PINHOLE -> PINHOLE, SIMPLE_RADIAL / RADIAL -> OPENCV, the radial
+        fisheyes -> OPENCV_FISHEYE, SIMPLE_DIVISION -> DIVISION, SIMPLE_FISHEYE -> FISHEYE). Every
+        model distorts normalised coordinates and then applies ``(fx x + cx, fy y + cy)``, so
+        scaling the focal lengths and principal point is exact.
         """
         sx, sy = width / self.width, height / self.height
-        (fx, fy), (cx, cy) = self.focal, self.principal_point
-        k1, k2, p1, p2 = self._dist
-        same = abs(sx - sy) < 1e-12
-        if self.model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") and same:
-            params = np.array([fx * sx, cx * sx, cy * sy, *self.params[3:]])
-            model = self.model
-        elif self.model in ("PINHOLE", "SIMPLE_PINHOLE"):
-            model, params = "PINHOLE", np.array([fx * sx, fy * sy, cx * sx, cy * sy])
+        model, params = self.model, self.params.copy()
+        if abs(sx - sy) >= 1e-12 and model in _TWO_FOCAL:
+            twin = _TWO_FOCAL[model]
+            (fx, fy), (cx, cy) = self.focal, self.principal_point
+            extra = np.zeros(len(CAMERA_MODELS[twin]) - 4)
+            extra[: len(self.distortion)] = self.distortion
+            model, params = twin, np.array([fx, fy, cx, cy, *extra])
+        probe = pycolmap.Camera(model=model, width=self.width, height=self.height, params=params.tolist())
+        focal = list(probe.focal_length_idxs())
+        principal = list(probe.principal_point_idxs())
+        if len(focal) == 1:
+            params[focal] *= sx  # sx == sy here
         else:
-            model, params = "OPENCV", np.array([fx * sx, fy * sy, cx * sx, cy * sy, k1, k2, p1, p2])
+            params[focal[0]] *= sx
+            params[focal[1]] *= sy
+        params[principal[0]] *= sx
+        params[principal[1]] *= sy
         return Camera(model, int(width), int(height), params, self.rotation, self.translation)
 
     def __eq__(self, other: object) -> bool:

@@ -17,6 +17,19 @@ PARAMS = {
     "SIMPLE_RADIAL": [150.0, 80.0, 60.0, -0.08],
     "RADIAL": [150.0, 80.0, 60.0, -0.1, 0.03],
     "OPENCV": [150.0, 152.0, 79.0, 61.0, -0.12, 0.04, 0.002, -0.0015],
+    "FULL_OPENCV": [150.0, 152.0, 79.0, 61.0, -0.12, 0.04, 0.002, -0.0015, 0.001, 0.0005, 0.0, 0.0002],
+    "OPENCV_FISHEYE": [150.0, 152.0, 79.0, 61.0, 0.05, -0.01, 0.002, -0.0005],
+    "FOV": [150.0, 152.0, 79.0, 61.0, 0.6],
+    "SIMPLE_RADIAL_FISHEYE": [150.0, 80.0, 60.0, 0.04],
+    "RADIAL_FISHEYE": [150.0, 80.0, 60.0, 0.04, -0.01],
+    "THIN_PRISM_FISHEYE": [150.0, 152.0, 79.0, 61.0, 0.05, -0.01, 0.001, -0.001, 0.0005, 0.0, 0.001, -0.001],
+    "RAD_TAN_THIN_PRISM_FISHEYE": [150.0, 152.0, 79.0, 61.0, 0.05, -0.01, 0.002, 0.0, 0.0, 0.0, 0.001, -0.001,
+                                   0.0005, 0.0, -0.0005, 0.0],
+    "SIMPLE_DIVISION": [150.0, 80.0, 60.0, -0.05],
+    "DIVISION": [150.0, 152.0, 79.0, 61.0, -0.05],
+    "SIMPLE_FISHEYE": [150.0, 80.0, 60.0],
+    "FISHEYE": [150.0, 152.0, 79.0, 61.0],
+    "EUCM": [150.0, 152.0, 79.0, 61.0, 0.5, 1.0],
 }
 
 
@@ -133,7 +146,7 @@ def test_camera_is_frozen_and_copies_inputs():
 @pytest.mark.parametrize(
     ("kwargs", "field"),
     [
-        ({"model": "FISHEYE"}, "model"),
+        ({"model": "EQUIRECTANGULAR"}, "model"),
         ({"width": 0}, "width"),
         ({"params": [1.0, 2.0]}, "params"),
         ({"params": [np.nan, 5.0, 5.0, 5.0]}, "params"),
@@ -149,3 +162,11 @@ def test_invalid_cameras_name_the_field(kwargs, field):
     args.update(kwargs)
     with pytest.raises(ValueError, match=field):
         Camera(**args)
+
+
+def test_every_perspective_colmap_model_is_supported():
+    """Issue 19: pycolmap's models, not a hand-written subset; the fisheyes are distorted even at zero."""
+    assert set(CAMERA_MODELS) == set(PARAMS)
+    assert Camera("FISHEYE", 160, 120, [150.0, 150.0, 80.0, 60.0], np.eye(3), np.zeros(3)).is_distorted
+    assert not Camera("OPENCV", 160, 120, [150.0, 150.0, 80.0, 60.0, 0, 0, 0, 0], np.eye(3), np.zeros(3)).is_distorted
+    assert Camera("OPENCV", 160, 120, PARAMS["OPENCV"], np.eye(3), np.zeros(3)).is_distorted

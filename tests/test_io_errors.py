@@ -318,12 +318,22 @@ def test_unknown_camera_model(scene_dir):
 
 # OPENCV_FISHEYE: fx, fy, cx, cy, k1, k2, k3, k4 (COLMAP knows it, mvintrinsic does not support it).
 FISHEYE_PARAMS = [57.6, 57.6, 32.0, 24.0, 0.01, 0.0, 0.0, 0.0]
+#: A COLMAP model without a focal plane: the one kind mvintrinsic refuses (camera.CAMERA_MODELS).
+SPHERICAL_PARAMS = [64.0, 48.0]
+
+
+def test_colmap_fisheye_model_is_read(scene_dir):
+    """Every perspective COLMAP model is supported through pycolmap (issue 19), a fisheye included."""
+    _set_camera_model(scene_dir, "OPENCV_FISHEYE", FISHEYE_PARAMS)
+    scene = load_scene(scene_dir)
+    camera = next(v.camera for v in scene.views if v.camera.model == "OPENCV_FISHEYE")
+    assert camera.is_distorted and camera.params.tolist() == FISHEYE_PARAMS
 
 
 def test_colmap_model_not_supported_text(scene_dir):
-    _set_camera_model(scene_dir, "OPENCV_FISHEYE", FISHEYE_PARAMS)
+    _set_camera_model(scene_dir, "EQUIRECTANGULAR", SPHERICAL_PARAMS)
     file = scene_dir / "sparse" / "cameras.txt"
-    with pytest.raises(SceneError, match=r"cameras\.txt: .*unsupported camera model 'OPENCV_FISHEYE'") as exc:
+    with pytest.raises(SceneError, match=r"cameras\.txt: .*unsupported camera model 'EQUIRECTANGULAR'") as exc:
         load_scene(scene_dir)
     assert exc.value.path == file
 
@@ -332,11 +342,11 @@ def test_colmap_model_not_supported_binary(scene_dir):
     import pycolmap
 
     sparse = scene_dir / "sparse"
-    _set_camera_model(scene_dir, "OPENCV_FISHEYE", FISHEYE_PARAMS)
+    _set_camera_model(scene_dir, "EQUIRECTANGULAR", SPHERICAL_PARAMS)
     pycolmap.Reconstruction(str(sparse)).write_binary(str(sparse))
     for name in ("cameras", "images", "points3D"):
         (sparse / f"{name}.txt").unlink()
-    with pytest.raises(SceneError, match=r"cameras\.bin: .*unsupported camera model 'OPENCV_FISHEYE'") as exc:
+    with pytest.raises(SceneError, match=r"cameras\.bin: .*unsupported camera model 'EQUIRECTANGULAR'") as exc:
         load_scene(scene_dir)
     assert exc.value.path == sparse / "cameras.bin"
 

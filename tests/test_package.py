@@ -103,3 +103,13 @@ def test_license_and_citation_match_the_package():
     assert re.search(r"^version: (\S+)$", citation, re.M).group(1) == mvintrinsic.__version__
     assert re.search(r"^license: (\S+)$", citation, re.M).group(1) == declared
     assert "doi: 10.1145/2756549" in citation  # Duchêne et al. 2015, the method
+
+
+#: Issue 19: a module a reader can hold in mind; split by job above this.
+MAX_MODULE_LINES = 900
+
+
+def test_no_module_is_longer_than_the_limit():
+    lengths = {str(p.relative_to(PACKAGE)): len(p.read_text(encoding="utf-8").splitlines())
+               for p in PACKAGE.rglob("*.py")}
+    assert not {k: n for k, n in lengths.items() if n > MAX_MODULE_LINES}

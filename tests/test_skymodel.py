@@ -841,3 +841,12 @@ def test_fixed_family_and_too_few_texels_for_a_choice():
         SkyConfig(model_folds=1)
     with pytest.raises(ValueError, match="coefficients must be given"):
         SkyModel(3.0, [1.0, 2.0, 3.0], 0.01, True, 12, sun_at(30.0), (0, 0, 1), 500, model="perez")
+
+
+def test_xyz_to_rgb_matrix_is_colour_sciences_srgb():
+    """The core's one colour matrix equals the maintained library's (pyproject: why not colour in the core)."""
+    import colour
+
+    from mvintrinsic.skymodel import _XYZ_TO_RGB
+
+    np.testing.assert_array_equal(_XYZ_TO_RGB, colour.RGB_COLOURSPACES["sRGB"].matrix_XYZ_to_RGB)

@@ -48,7 +48,8 @@ from .correspondence import Correspondences
 from .env_refine import EnvRefineConfig, Step4Result, refine, refine_environment
 from .env_shading import Step1Config, Step1Result, step1
 from .exposure import ExposureConfig, compensate, estimate_view_gains, restore_units
-from .matting import MattingConfig, intrinsic_layers
+from .laplacian import SolveReport
+from .matting import MattingConfig, intrinsic_layers_result
 from .model_choice import (
     choose_cast_shadows,
     choose_direct_sun,
@@ -322,12 +323,16 @@ class Step3View:
     timings : mapping of str to float
         ``segmentation``, ``shadow_mrf`` (paper only; the multi-view labelling is shared by all
         views, see :func:`step3`) and ``matting`` (or ``layers`` without matting) seconds.
+    solves : tuple of SolveReport
+        How each linear system of the matting was solved (converged, iterations, residual;
+        :class:`~mvintrinsic.laplacian.SolveReport`); empty without matting.
     """
 
     segmentation: Segmentation | None
     shadow: ShadowLabels | PixelShadowLabels
     layers: IntrinsicLayers
     timings: Mapping[str, float]
+    solves: tuple[SolveReport, ...] = ()
 
 
 def step3_view(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray, *,
@@ -376,14 +381,16 @@ def step3_view(view: View, quantities: PixelQuantities, sun_radiance: np.ndarray
         shadow = label_shadows(view.image, quantities, seg, sun_radiance, config=config.shadow)
         timings["shadow_mrf"] = time.perf_counter() - start
     start = time.perf_counter()
+    solves: tuple[SolveReport, ...] = ()
     if config.matting is None:
         layers = label_layers(view, quantities, shadow.labels, sun_radiance)
         timings["layers"] = time.perf_counter() - start
     else:
-        layers = intrinsic_layers(view, quantities, shadow.labels, sun_radiance, clusters=seg.labels,
-                                  config=config.matting)
+        matted = intrinsic_layers_result(view, quantities, shadow.labels, sun_radiance, clusters=seg.labels,
+                                         config=config.matting)
+        layers, solves = matted.layers, matted.solves
         timings["matting"] = time.perf_counter() - start
-    return Step3View(segmentation=seg, shadow=shadow, layers=layers, timings=timings)
+    return Step3View(segmentation=seg, shadow=shadow, layers=layers, timings=timings, solves=solves)
 
 
 #: Standard deviation (pixels) of the Gaussian that softens the shadow labels into ``v_sun`` when
@@ -491,11 +498,11 @@ def _multiview_labels(scene: Scene, quantities: Mapping[str, PixelQuantities], s
 
 
 def _step3_task(inputs: tuple[View, PixelQuantities], labels: PixelShadowLabels | None, *, sun_radiance: np.ndarray,
-                config: Config) -> tuple[IntrinsicLayers, dict[str, float]]:
-    """A task: :func:`step3_view` of one view, its layers and timings only (the rest stays on the worker)."""
+                config: Config) -> tuple[IntrinsicLayers, dict[str, float], list[dict]]:
+    """A task: :func:`step3_view` of one view, its layers, timings and solve reports only (the rest stays on the worker)."""
     view, quantities = inputs
     result = step3_view(view, quantities, sun_radiance, config=config, labels=labels)
-    return result.layers, dict(result.timings)
+    return result.layers, dict(result.timings), [report.to_dict() for report in result.solves]
 
 
 def _sun_pairs_task(inputs: tuple[View, PixelQuantities], *, config: SunConfig) -> SunPairs:
@@ -504,7 +511,7 @@ def _sun_pairs_task(inputs: tuple[View, PixelQuantities], *, config: SunConfig) 
     return find_sun_pairs(view, quantities, config=config)
 
 
-def _offsets_task(inputs: tuple[View, PixelQuantities], step3_result: tuple[IntrinsicLayers, dict[str, float]], *,
+def _offsets_task(inputs: tuple[View, PixelQuantities], step3_result: tuple[IntrinsicLayers, dict[str, float], list], *,
                   config: EnvRefineConfig) -> IntrinsicLayers:
     """A task: the paper's Step 4 on one view (:func:`~mvintrinsic.env_refine.refine_environment`), its layers."""
     return refine_environment(inputs[0].image, step3_result[0], config=config).layers
@@ -513,9 +520,10 @@ def _offsets_task(inputs: tuple[View, PixelQuantities], step3_result: tuple[Intr
 def _step3_layers(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_radiance: np.ndarray, *,
                   config: Config, progress: bool, tasks: _ViewTasks | None, inputs: Mapping[str, Any] | None
                   ) -> tuple[dict[str, IntrinsicLayers], dict[str, float], MultiViewShadowLabels | None,
-                             dict[str, Any]]:
-    """Step 3 for :func:`decompose`: the layers, timings (as :func:`step3`'s), the multi-view labelling
-    and, on a cluster (``tasks``), the per-view task futures (for Step 4 to start from in place)."""
+                             dict[str, Any], dict[str, list[dict]]]:
+    """Step 3 for :func:`decompose`: the layers, timings (as :func:`step3`'s), the multi-view labelling,
+    on a cluster (``tasks``) the per-view task futures (for Step 4 to start from in place), and each
+    view's matting solve reports (JSON-ready)."""
     from tqdm.auto import tqdm
 
     timings: dict[str, float] = {}
@@ -525,7 +533,7 @@ def _step3_layers(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_r
         for view in tqdm(scene.views, desc="step 3", unit="view", disable=not progress):
             result = step3_view(view, quantities[view.stem], sun_radiance, config=config,
                                 labels=None if shared is None else shared[view.stem])
-            results[view.stem] = (result.layers, result.timings)
+            results[view.stem] = (result.layers, result.timings, [report.to_dict() for report in result.solves])
         futures: dict[str, Any] = {}
     else:
         start = time.perf_counter()
@@ -537,12 +545,12 @@ def _step3_layers(scene: Scene, quantities: Mapping[str, PixelQuantities], sun_r
                                sun_radiance=np.asarray(sun_radiance), config=config)
         results = tasks.gather(futures, desc="step 3", progress=progress)
         timings["cluster.step3"] = time.perf_counter() - start
-    layers = {}
+    layers, solves = {}, {}
     for stem in scene.stems:
-        layers[stem], view_timings = results[stem]
+        layers[stem], view_timings, solves[stem] = results[stem]
         for name, seconds in view_timings.items():
             timings[name] = timings.get(name, 0.0) + seconds
-    return layers, timings, shared, futures
+    return layers, timings, shared, futures, solves
 
 
 def step4(scene: Scene, quantities: Mapping[str, PixelQuantities], layers: Mapping[str, IntrinsicLayers], *,
@@ -723,6 +731,7 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     no_sun = "sun" in model and model["sun"].choice == "no direct sun"
     no_cast = "shadows" in model and model["shadows"].choice == "no cast shadow"
     shared = step3_futures = None
+    solves: dict[str, list[dict]] = {}
     if no_sun or (no_cast and config.steps > 2):  # Step 2 keeps the proxy's shadows
         # Every pixel lit: R = I / S_env without direct sun (Eq. 2 with L_sun = 0), or
         # R = I / (S_env + L_sun cos) without a cast shadow; nothing to label, no S_env to refine.
@@ -735,7 +744,7 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         timings["layers"] = time.perf_counter() - start
     else:
         logger.info("step 3 (%s labelling) over %d views", config.shadow.method, len(scene.views))
-        layers, step3_timings, shared, step3_futures = _step3_layers(
+        layers, step3_timings, shared, step3_futures, solves = _step3_layers(
             scene, quantities, sun_radiance, config=config, progress=progress, tasks=tasks, inputs=inputs)
         if "scatter" in step3_timings:  # the labels' shipping adds to the inputs'
             timings["scatter"] += step3_timings.pop("scatter")
@@ -781,4 +790,9 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         horizon_plane=s1.horizon.plane, envmap=s1.environment.radiance, exposure=gains,
         horizon_evidence=s1.horizon.evidence, model=model,
     )
-    return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config.to_dict())
+    diagnostics = {"matting": solves} if any(solves.values()) else {}
+    for stem, reports in solves.items():
+        for report in reports:
+            if not report["converged"]:
+                logger.warning("view %s: %s did not reach rtol (residual %.2e)", stem, report["what"], report["residual"])
+    return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config, diagnostics=diagnostics)

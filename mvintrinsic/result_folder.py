@@ -15,7 +15,10 @@ import json
 import os
 import shutil
 import tempfile
+import warnings
+from collections.abc import Mapping
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -278,8 +281,9 @@ def _write_result(result: Decomposition, folder: Path) -> None:
         sizes[relative] = write_image(folder / relative, array, dtype=dtype).stat().st_size
     lighting = result.lighting.to_dict()
     lighting.update(
-        views=list(result.stems), timings=dict(result.timings), version=result.version, config=dict(result.config),
-        files=sizes,
+        views=list(result.stems), timings=dict(result.timings), version=result.version,
+        config=dict(result.config) if isinstance(result.config, Mapping) else result.config.to_dict(),
+        diagnostics=dict(result.diagnostics), files=sizes,
     )
     write_json(folder / "lighting.json", lighting)
 
@@ -315,6 +319,28 @@ def _check_complete(folder: Path, data: dict) -> None:
         if path.stat().st_size != size:
             raise SceneError(path, f"{path.stat().st_size} bytes where lighting.json says {size}: the result "
                              "folder mixes two writes; write the result again")
+
+
+def _config(data: Any, folder: Path) -> Any:
+    """The saved configuration as a :class:`~mvintrinsic.Config`, or as saved when it is not one.
+
+    A mapping with keys :class:`~mvintrinsic.Config` does not have is another method's settings (a
+    baseline's) and is kept as it is; one with Config's keys that this version cannot read (values
+    of another version) is kept too, with a warning naming the folder.
+    """
+    import dataclasses
+
+    from .pipeline import Config
+
+    if not data:
+        return {}
+    if not isinstance(data, Mapping) or not set(data) <= {f.name for f in dataclasses.fields(Config)}:
+        return data
+    try:
+        return Config.from_dict(data)
+    except (TypeError, ValueError) as error:
+        warnings.warn(f"{folder}: the configuration in lighting.json is kept as a mapping: {error}", stacklevel=3)
+        return data
 
 
 def load_decomposition(folder: os.PathLike | str) -> Decomposition:
@@ -366,5 +392,7 @@ def load_decomposition(folder: os.PathLike | str) -> Decomposition:
             shadow_labels=_read_raw(out / "shadow_labels.png", 1),
         )
     return Decomposition(
-        layers, lighting, timings=data.get("timings", {}), config=data.get("config", {}), version=data.get("version", "")
+        layers, lighting, timings=data.get("timings", {}), config=_config(data.get("config", {}), folder),
+        version=data.get("version", ""),
+        diagnostics=data.get("diagnostics", {}),
     )

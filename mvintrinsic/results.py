@@ -415,17 +415,26 @@ class Decomposition:
         Shared lighting estimate.
     timings : mapping of str to float, optional
         Wall-clock seconds spent in each stage, by stage name.
-    config : mapping, optional
-        The full configuration used, as a JSON-compatible mapping.
+    config : Config or mapping, optional
+        The configuration used: the :class:`mvintrinsic.Config` of :func:`mvintrinsic.decompose`
+        (and of a result folder it wrote, read back), or a JSON-compatible mapping for results made
+        otherwise (a baseline's settings, or a result folder whose configuration this version
+        cannot read).
     version : str, optional
         mvintrinsic version that produced the result.
+    diagnostics : mapping, optional
+        How the numerical solves went, JSON-compatible: ``{"matting": {stem: [report, ...]}}`` with
+        one report per linear system of the view's matting (``what``, ``solver``, ``unknowns``,
+        ``channels``, ``converged``, ``n_iter``, ``residual``, ``seconds``;
+        :class:`mvintrinsic.laplacian.SolveReport`). Empty when nothing was solved (no matting).
     """
 
     layers: Mapping[str, IntrinsicLayers]
     lighting: Lighting
     timings: Mapping[str, float] = field(default_factory=dict)
-    config: Mapping[str, Any] = field(default_factory=dict)
+    config: Any = field(default_factory=dict)
     version: str = ""
+    diagnostics: Mapping[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         layers = _frozen_mapping(self.layers, "layers")
@@ -442,7 +451,11 @@ class Decomposition:
                 raise ValueError(f"timings[{stage!r}] must be a non-negative number of seconds, got {seconds!r}")
         object.__setattr__(self, "layers", layers)
         object.__setattr__(self, "timings", timings)
-        object.__setattr__(self, "config", _frozen_mapping(self.config, "config"))
+        if isinstance(self.config, Mapping):
+            object.__setattr__(self, "config", _frozen_mapping(self.config, "config"))
+        elif not callable(getattr(self.config, "to_dict", None)):  # a Config (defined above this layer)
+            raise TypeError(f"config must be a Config or a mapping, got {describe(self.config)}")
+        object.__setattr__(self, "diagnostics", _frozen_mapping(self.diagnostics, "diagnostics"))
         if not self.version:
             object.__setattr__(self, "version", __version__)
 

@@ -74,7 +74,7 @@ def test_decompose_records_lighting_timings_and_config(demo_result):
                   "shadow_labels.graph_cut", "segmentation", "matting"):
         assert stage in demo_result.timings
     assert "shadow_mrf" not in demo_result.timings
-    assert Config.from_dict(demo_result.config) == Config()
+    assert demo_result.config == Config()  # the Config itself (issue 19), not a mapping
 
 
 def test_the_papers_labelling_stays_selectable(demo_scene, demo_result):
@@ -277,7 +277,7 @@ def test_cli_decompose_writes_a_result_folder(tmp_path):
     result = load_decomposition(out)
     assert result.stems == ("view_004", "view_005")
     assert result.layers["view_004"].shape == (180, 240)
-    assert result.config["sun"]["walk"] == 25
+    assert isinstance(result.config, Config) and result.config.sun.walk == 25  # read back as a Config
     saved = json.loads((out / "lighting.json").read_text())
     assert saved["sun_radiance"] == pytest.approx(result.lighting.sun_radiance.tolist())
 
@@ -446,3 +446,36 @@ def test_warmth_is_blind_to_white_balance_and_says_sun_on_the_demo(demo_scene):
     assert after.warmth == pytest.approx(before.warmth, abs=1e-5)
     assert after.contrast == pytest.approx(before.contrast, rel=0.05)  # luminance weights move it a little
     assert before.warmth > SunConfig().sun_warmth
+
+
+def test_solver_diagnostics_are_in_the_result_and_its_folder(tmp_path):
+    """Issue 19: how every matting system was solved is returned, not only logged, and saved."""
+    from mvintrinsic import save_decomposition
+    from mvintrinsic.io import demo_scene_path
+
+    scene = load_scene(demo_scene_path())
+    result = decompose(scene)
+    reports = result.diagnostics["matting"]
+    assert set(reports) == set(scene.stems)
+    rtol = Config().matting.rtol
+    for stem, view_reports in reports.items():
+        assert [r["what"].split(" '")[0] for r in view_reports][:1] == ["sun visibility matting"], stem
+        for report in view_reports:
+            assert report["converged"] and 0.0 <= report["residual"] <= rtol, (stem, report)
+            assert report["solver"] in ("direct", "cg", "none") and report["unknowns"] >= 0
+    save_decomposition(result, tmp_path / "result")
+    assert load_decomposition(tmp_path / "result").diagnostics == result.diagnostics
+
+
+def test_result_config_round_trips_as_a_config_or_stays_a_mapping(tmp_path, demo_result):
+    from mvintrinsic import save_decomposition
+
+    save_decomposition(demo_result, tmp_path / "ours")
+    assert load_decomposition(tmp_path / "ours").config == demo_result.config == Config()
+    lighting = tmp_path / "ours" / "lighting.json"
+    data = json.loads(lighting.read_text())
+    data["config"]["steps"] = 7  # Config's key, a value this version refuses
+    lighting.write_text(json.dumps(data))
+    with pytest.warns(UserWarning, match="kept as a mapping"):
+        kept = load_decomposition(tmp_path / "ours").config
+    assert kept["steps"] == 7

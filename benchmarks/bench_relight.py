@@ -96,6 +96,7 @@ from scipy import ndimage
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
+from mvintrinsic.caster import AUTO_COMPLETION_DISTANCE
 from mvintrinsic.correspondence import cross_view_agreement
 from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import ground_truth_decomposition, read_ground_truth
@@ -482,7 +483,7 @@ def softness_scene(folder: Path) -> dict:
             origins = relighter.receivers[s].reshape(-1, 3) + config.ray_offset * direction
             t = relighter.shadow_casters[s].hit_distance(origins, direction).astype(np.float64)
             t_proxy, primitive = tracer.first_primitive(origins, direction)
-            completes = ~blocked[s][primitive] & (t_proxy + config.ray_offset >= config.completion_distance)
+            completes = ~blocked[s][primitive] & (t_proxy + config.ray_offset >= relighter.completion_distance)
             t = np.where(completes, np.minimum(t, t_proxy), t).reshape(shape)
             t = np.where(sharp[s] < 0.5, t, np.inf)
             known = np.isfinite(t)
@@ -606,7 +607,7 @@ def receivers_scene(folder: Path) -> dict:
     ground-truth layers with ``light_dropped=False`` as row (c):
 
     * ``exact_at_proxy``: every hit of the exact mesh shades;
-    * ``exact_at_proxy_far``: hits nearer than ``RelightConfig.completion_distance`` are ignored
+    * ``exact_at_proxy_far``: hits nearer than ``AUTO_COMPLETION_DISTANCE`` (0.6 m) are ignored
       (the rule row (d)'s proxy completion uses: a receiver on a noisy proxy lies centimetres in
       front of or behind the true surface, which then shades it);
     * ``exact_at_proxy_far_and_caster``: that, or row (d)'s visibility where it is darker (our
@@ -646,7 +647,7 @@ def receivers_scene(folder: Path) -> dict:
     for tag, (direction, images, _) in tags.items():
         sun = np.asarray(direction, dtype=np.float64)
         everything = exact_from_proxy(sun, 0.0)
-        far = exact_from_proxy(sun, config.completion_distance)
+        far = exact_from_proxy(sun, AUTO_COMPLETION_DISTANCE)
         caster = ours.visibility_at(sun)
         rows = {"input": inputs,
                 "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),

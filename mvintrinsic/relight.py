@@ -135,6 +135,7 @@ from .caster import (
     _check_tracer,
     _revote,
     build_caster,
+    choose_completion_distance,
     contradicted_primitives,
     merge_casters,
     remove_contradicted,
@@ -496,6 +497,12 @@ class Relighter:
                 casters[stem] = _revote(casters[stem], lit_points[stem], others, capture, config, batch)
             excluded = contradicted_primitives(tracer, [lit_points[s] for s in self.stems], capture,
                                                config=config, batch=batch)
+        #: Proxy hits nearer than this (metres) complete no shadow (RelightConfig.completion_distance),
+        #: and the share of lit points the proxy shaded within 0.6 m at capture when it was "auto".
+        self.completion_distance, self.self_shading = 0.0, None
+        if config.method == "multiview":
+            self.completion_distance, self.self_shading = choose_completion_distance(
+                config, tracer, [lit_points[s] for s in self.stems], capture, batch=batch)
         timings["votes"] = time.perf_counter() - start
 
         start = time.perf_counter()
@@ -673,7 +680,7 @@ class Relighter:
         return _NewSun(
             receivers=self.receivers[stem].reshape(-1, 3),  # a view, no copy
             shape=layers.shape, blocked=blocked,
-            min_distance=config.completion_distance if config.method == "multiview" else 0.0,
+            min_distance=self.completion_distance,
             config=config, batch=self._batch, normals=self.normals[stem].astype(np.float32), base=base,
             floor=floor, fill=fill, reflectance=self.reflectance[stem],
             fill_reflectance=np.where(unknown, np.float32(0.0), self.reflectance[stem]),  # so the fill adds to 0

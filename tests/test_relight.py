@@ -121,11 +121,32 @@ def test_config_defaults_are_the_papers():
     ("field", "value"),
     [("tau_s", 1.5), ("tau_s", -0.1), ("tau_s", "0.8"), ("epsilon", -1), ("epsilon", 2.5), ("epsilon", True),
      ("min_cluster", 0), ("min_proxy_hits", 1.2), ("min_proxy_hits", np.nan), ("blur", -1.0), ("blur", np.inf),
-     ("ray_offset", -0.01), ("ray_stride", 0), ("ray_stride", 1.5)],
+     ("ray_offset", -0.01), ("ray_stride", 0), ("ray_stride", 1.5), ("completion_distance", -0.5),
+     ("completion_distance", "near")],
 )
 def test_config_errors_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         RelightConfig(**{field: value})
+
+
+def test_completion_distance_auto_follows_the_proxys_self_shading(scene):
+    """``"auto"``: 0 on an exact proxy (its lit points see the sun), 0.6 m on one that shades its lit points."""
+    from mvintrinsic.caster import AUTO_COMPLETION_DISTANCE, choose_completion_distance, proxy_self_shading
+
+    direction = sun(SUN_AZIMUTH, SUN_ELEVATION)
+    lit = ~scene.exact_shadow(direction) & scene.hit
+    points = scene.points[lit]
+    assert RelightConfig().completion_distance == "auto"
+    assert proxy_self_shading(scene.tracer, [points], direction, distance=0.6) < 0.002
+    assert choose_completion_distance(RelightConfig(), scene.tracer, [points], direction)[0] == 0.0
+    # the same points 5 cm inside the surfaces they lie on (a noisy proxy): the proxy shades them
+    inside = points - 0.05 * scene.normals[lit]
+    share = proxy_self_shading(scene.tracer, [inside], direction, distance=0.6)
+    assert share > 0.9
+    distance, measured = choose_completion_distance(RelightConfig(), scene.tracer, [inside], direction)
+    assert distance == AUTO_COMPLETION_DISTANCE and measured == pytest.approx(share)
+    assert choose_completion_distance(RelightConfig(completion_distance=0.3), scene.tracer, [inside],
+                                      direction) == (0.3, None)
 
 
 # ---------------------------------------------------------------------------------------------

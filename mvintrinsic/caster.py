@@ -108,7 +108,7 @@ from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
 from .results import SHADOW_LABELS
 
-__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "merge_casters", "remove_contradicted", "shadow_pixels"]
+__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "merge_casters", "remove_contradicted", "shadow_pixels"]
 
 #: 8-connectivity of the shadow clusters.
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -711,17 +711,43 @@ def contradicted_primitives(tracer: Tracer, lit_points: Sequence[np.ndarray], su
     (K,) int64
         Sorted indices of the contradicted primitives.
     """
+    config = config_or_default(config, RelightConfig)
+    _, primitive = capture_first_hits(tracer, lit_points, sun_direction, config=config, batch=batch)
+    return _contradicted(primitive, config.epsilon)
+
+
+def capture_first_hits(tracer: Tracer, lit_points: Sequence[np.ndarray], sun_direction: np.ndarray, *,
+                       config: RelightConfig | None = None, batch: int = DEFAULT_BATCH
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The first proxy hit of every lit point's ray toward the sun: what the proxy says of the lit pixels.
+
+    Rays start ``config.ray_offset`` toward the sun. One cast serves both uses of it:
+    :func:`contradicted_primitives` (the primitives hit) and :func:`proxy_self_shading` (how near).
+
+    Returns
+    -------
+    t : (N,) float32
+        Distance from the point to the hit, metres; ``inf`` on a miss. ``N`` is the number of
+        points over all arrays, in order.
+    primitive : (N,) int64
+        The primitive hit; -1 on a miss.
+    """
     tracer = _check_tracer(tracer)
     config = config_or_default(config, RelightConfig)
     sun = as_unit_vector(sun_direction, "sun_direction")
-    ids = [np.zeros(0, dtype=np.int64)]
+    t, ids = [np.zeros(0, dtype=np.float32)], [np.zeros(0, dtype=np.int64)]
     for i, p in enumerate(lit_points):
         p = as_array(p, f"lit_points[{i}]", shape=(None, 3), dtype=np.float64)
-        if not len(p):
-            continue
-        _, primitive = tracer.first_primitive(p, sun, t_min=config.ray_offset, batch=batch)
-        ids.append(primitive[primitive >= 0])
-    return np.flatnonzero(np.bincount(np.concatenate(ids)) > config.epsilon).astype(np.int64)
+        if len(p):
+            distance, primitive = tracer.first_primitive(p, sun, t_min=config.ray_offset, batch=batch)
+            t.append(distance)
+            ids.append(primitive)
+    return np.concatenate(t), np.concatenate(ids)
+
+
+def _contradicted(primitive: np.ndarray, epsilon: int) -> np.ndarray:
+    """The primitives first hit more than ``epsilon`` times, sorted (K,) int64."""
+    return np.flatnonzero(np.bincount(primitive[primitive >= 0]) > epsilon).astype(np.int64)
 
 
 def _revote(caster: Caster, own: np.ndarray, others: list[np.ndarray], sun: np.ndarray, config: RelightConfig,
@@ -756,19 +782,13 @@ def proxy_self_shading(tracer: Tracer, lit_points: Sequence[np.ndarray], sun_dir
     noise, a receiver a few centimetres inside the surface. Rays start ``config.ray_offset`` toward
     the sun, as every shadow ray. Returns 0 without lit points.
     """
-    config = config_or_default(config, RelightConfig)
-    tracer = _check_tracer(tracer)
-    sun = np.asarray(sun_direction, dtype=np.float64)
-    points = [np.asarray(p, dtype=np.float64).reshape(-1, 3) for p in lit_points]
-    total = sum(len(p) for p in points)
-    if total == 0:
-        return 0.0
-    near = 0
-    for p in points:
-        if len(p):
-            t, _ = tracer.first_primitive(p + config.ray_offset * sun, sun, batch=batch)
-            near += int(np.count_nonzero(t + config.ray_offset < distance))
-    return near / total
+    t, _ = capture_first_hits(tracer, lit_points, sun_direction, config=config, batch=batch)
+    return _share_within(t, distance)
+
+
+def _share_within(t: np.ndarray, distance: float) -> float:
+    """Share of the first-hit distances ``t`` below ``distance``; 0 without any."""
+    return float(np.count_nonzero(t < distance) / len(t)) if len(t) else 0.0
 
 
 def choose_completion_distance(config: RelightConfig, tracer: Tracer, lit_points: Sequence[np.ndarray],
@@ -784,8 +804,15 @@ def choose_completion_distance(config: RelightConfig, tracer: Tracer, lit_points
     """
     if config.completion_distance != "auto":
         return float(config.completion_distance), None
-    share = proxy_self_shading(tracer, lit_points, sun_direction, distance=AUTO_COMPLETION_DISTANCE, config=config,
-                               batch=batch)
+    t, _ = capture_first_hits(tracer, lit_points, sun_direction, config=config, batch=batch)
+    return _completion_distance(config, t)
+
+
+def _completion_distance(config: RelightConfig, t: np.ndarray) -> tuple[float, float | None]:
+    """:func:`choose_completion_distance` from the lit points' first-hit distances ``t`` (:func:`capture_first_hits`)."""
+    if config.completion_distance != "auto":
+        return float(config.completion_distance), None
+    share = _share_within(t, AUTO_COMPLETION_DISTANCE)
     return (AUTO_COMPLETION_DISTANCE if share >= SELF_SHADING_SHARE else 0.0), share
 
 

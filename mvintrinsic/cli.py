@@ -144,7 +144,7 @@ def _max_size(text: str) -> int | None:
 def _print_decomposition(result, scene: Scene) -> None:
     sun = result.lighting.sun_radiance
     sky = result.lighting.sky
-    config = result.config.to_dict() if hasattr(result.config, "to_dict") else (result.config or {})
+    config = result.config_dict()
     steps = config.get("steps")
     if steps is not None:
         step4 = f"; Step 4: {config.get('env_refine', {}).get('method')}" if steps == 4 else ""

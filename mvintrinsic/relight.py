@@ -133,9 +133,11 @@ from .caster import (
     RelightConfig,
     _check_sun,
     _check_tracer,
+    _completion_distance,
+    _contradicted,
     _revote,
     build_caster,
-    choose_completion_distance,
+    capture_first_hits,
     contradicted_primitives,
     merge_casters,
     remove_contradicted,
@@ -490,19 +492,20 @@ class Relighter:
 
         start = time.perf_counter()
         excluded = np.zeros(0, dtype=np.int64)
+        #: Proxy hits nearer than this (metres) complete no shadow (RelightConfig.completion_distance),
+        #: and the share of lit points the proxy shaded within 0.6 m at capture when it was "auto".
+        self.completion_distance, self.self_shading = 0.0, None
         if config.method == "multiview":
             # Every view's lit pixels vote against every view's caster and against the proxy.
             for stem in self.stems:
                 others = [lit_points[s] for s in self.stems if s != stem]
                 casters[stem] = _revote(casters[stem], lit_points[stem], others, capture, config, batch)
-            excluded = contradicted_primitives(tracer, [lit_points[s] for s in self.stems], capture,
-                                               config=config, batch=batch)
-        #: Proxy hits nearer than this (metres) complete no shadow (RelightConfig.completion_distance),
-        #: and the share of lit points the proxy shaded within 0.6 m at capture when it was "auto".
-        self.completion_distance, self.self_shading = 0.0, None
-        if config.method == "multiview":
-            self.completion_distance, self.self_shading = choose_completion_distance(
-                config, tracer, [lit_points[s] for s in self.stems], capture, batch=batch)
+            # One cast of the lit points' capture-sun rays: the proxy primitives they contradict, and
+            # how near the proxy shades them (completion_distance="auto").
+            first_t, first_primitive = capture_first_hits(tracer, [lit_points[s] for s in self.stems], capture,
+                                                          config=config, batch=batch)
+            excluded = _contradicted(first_primitive, config.epsilon)
+            self.completion_distance, self.self_shading = _completion_distance(config, first_t)
         timings["votes"] = time.perf_counter() - start
 
         start = time.perf_counter()

@@ -282,7 +282,7 @@ def _write_result(result: Decomposition, folder: Path) -> None:
     lighting = result.lighting.to_dict()
     lighting.update(
         views=list(result.stems), timings=dict(result.timings), version=result.version,
-        config=dict(result.config) if isinstance(result.config, Mapping) else result.config.to_dict(),
+        config=result.config_dict(),
         diagnostics=dict(result.diagnostics), files=sizes,
     )
     write_json(folder / "lighting.json", lighting)

@@ -459,6 +459,10 @@ class Decomposition:
         if not self.version:
             object.__setattr__(self, "version", __version__)
 
+    def config_dict(self) -> dict[str, Any]:
+        """:attr:`config` as a JSON-compatible mapping (a Config's ``to_dict()``, or the mapping itself)."""
+        return dict(self.config) if isinstance(self.config, Mapping) else self.config.to_dict()
+
     @property
     def stems(self) -> tuple[str, ...]:
         """View names in order."""

@@ -693,21 +693,18 @@ def proxy_variant(folder: Path, scene, name: str):
     * ``fused exact depth``: the same simulation without any degradation (no depth noise, holes,
       losses, grazing-angle or edge erosion): what the TSDF fusion itself (4 cm voxels, two
       views per voxel) keeps of the exact depth maps;
-    * ``exact``: the exact mesh (``proxy_clean.ply`` subdivided as the ``clean`` proxy of
-      ``bench_stability.py``); ``exact seen by K+``: its triangles that the pixel-centre rays of
+    * ``exact``: the exact mesh (``proxy_clean.ply`` subdivided as the Step-1 benchmarks do,
+      ``bench_step1_accuracy.clean_proxy``); ``exact seen by K+``: its triangles that the pixel-centre rays of
       at least ``K`` views hit first (what the photographs show, at the precision of the mesh).
     """
-    from bench_stability import CLEAN_MAX_EDGE, CLEAN_RADIUS
+    from bench_step1_accuracy import clean_proxy
 
-    from mvintrinsic.raytrace import subdivide
     from mvintrinsic.synth.proxy import ProxyConfig, simulate_mvs_proxy
 
     settings = json.loads((folder / "gt" / "scene_info.json").read_text())["config"]
     own = ProxyConfig(**settings["proxy"])
     if name.startswith("exact"):
-        centre = np.mean([v.camera.center for v in scene.views], axis=0)
-        exact = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centre,
-                          radius=CLEAN_RADIUS)
+        exact = clean_proxy(folder, scene)
         return exact if name == "exact" else _seen_part(exact, scene.views, int(name.split()[-1].rstrip("+")))
     if name.startswith("loss "):
         loss = float(name.split()[1])

@@ -82,11 +82,6 @@ HERE = Path(__file__).resolve()
 SEED = 0
 #: Radius of the spheres whose faces are removed from the proxy (``missing``), metres.
 HOLE_RADIUS = 1.5
-#: The ``clean`` proxy is the exact mesh subdivided to edges of at most this many metres within
-#: :data:`CLEAN_RADIUS` of the cameras' centroid (Step 1 carries its quantities on vertices; the
-#: exact mesh's triangles are metres wide), as ``benchmarks/bench_step1_accuracy.py`` does.
-CLEAN_MAX_EDGE = 0.2
-CLEAN_RADIUS = 30.0
 #: Fraction of the proxy's area removed (``missing``).
 MISSING_FRACTION = 0.5
 #: Decimation factor of the ``decimated`` proxy (triangles / this).
@@ -291,7 +286,6 @@ def _lighting_flags(result) -> dict:
 def build_variant(spec: dict, folders: dict) -> tuple:
     """The point's scene (in memory), its scene folder and what was changed."""
     from mvintrinsic import load_scene
-    from mvintrinsic.io import read_proxy
 
     folder = folders[spec["scene"]]
     stems = None
@@ -301,12 +295,9 @@ def build_variant(spec: dict, folders: dict) -> tuple:
     scene = load_scene(folder, views=stems)
     info: dict = {"views": list(scene.stems)}
     if spec["proxy"] == "clean":  # the exact mesh, subdivided as the Step-1 benchmarks do (vertex quantities)
-        from mvintrinsic.raytrace import subdivide
+        from bench_step1_accuracy import clean_proxy
 
-        centre = np.mean([v.camera.center for v in scene.views], axis=0)
-        proxy = subdivide(read_proxy(folder / "proxy_clean.ply"), max_edge=CLEAN_MAX_EDGE, center=centre,
-                          radius=CLEAN_RADIUS)
-        scene = dataclasses.replace(scene, proxy=proxy)
+        scene = dataclasses.replace(scene, proxy=clean_proxy(folder, scene))
     elif spec["proxy"] == "decimated":
         proxy, info["proxy"] = decimated_proxy(scene.proxy)
         scene = dataclasses.replace(scene, proxy=proxy)

@@ -57,6 +57,7 @@ from .model_choice import (
     sky_choice,
 )
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
+from .occluders import OccluderConfig, carve_occluders, occluded_step1
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
 from .raytrace import Tracer, depth_map
 from .resolution import downscale_scene, upsample_layers
@@ -100,6 +101,13 @@ class Config:
     env_refine : EnvRefineConfig
         Step 4 (Sec. 7): the multi-view reflectance fusion (default) or the paper's ``S_env``
         offsets (:mod:`mvintrinsic.env_refine`).
+    occluders : OccluderConfig or None
+        Beyond the paper (:mod:`mvintrinsic.occluders`): after Step 3, carve the occluders the
+        proxy lost (tree crowns, poles) from the shadows and the photos, integrate ``S_sky`` and
+        ``S_ind`` again with them, and run Steps 2 and 3 again. It brings the umbra's ``S_env``
+        and ``L_sun`` near the truth on the synthetic scenes, at a cost in reflectance and
+        shading LMSE on some (``docs/step4.md``), and doubles Steps 2-3's time. None (default):
+        off.
     scale : float
         Working resolution, in (0, 1]: the views are area-averaged to ``scale`` times their size
         (but not below :data:`MIN_WORKING_SIDE` pixels on their longer side), decomposed, and the
@@ -132,6 +140,7 @@ class Config:
     multiview: MultiViewShadowConfig = field(default_factory=MultiViewShadowConfig)
     matting: MattingConfig | None = field(default_factory=MattingConfig)
     env_refine: EnvRefineConfig = field(default_factory=EnvRefineConfig)
+    occluders: OccluderConfig | None = None
     scale: float = 1.0
     max_side: int | None = None
     steps: int = 4
@@ -144,8 +153,8 @@ class Config:
         for name, kind in (("exposure", ExposureConfig), ("sun", SunConfig), ("segmentation", SegmentationConfig),
                            ("shadow", ShadowConfig),
                            ("multiview", MultiViewShadowConfig), ("matting", MattingConfig),
-                           ("env_refine", EnvRefineConfig)):
-            if name == "matting" and self.matting is None:
+                           ("env_refine", EnvRefineConfig), ("occluders", OccluderConfig)):
+            if name in ("matting", "occluders") and getattr(self, name) is None:
                 continue
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")
@@ -237,7 +246,7 @@ BALANCED_SIDE = 640
 _NESTED = {"step1": Step1Config, "exposure": ExposureConfig, "sun": SunConfig, "sky": SkyConfig,
            "segmentation": SegmentationConfig,
            "shadow": ShadowConfig, "multiview": MultiViewShadowConfig, "matting": MattingConfig,
-           "env_refine": EnvRefineConfig}
+           "env_refine": EnvRefineConfig, "occluders": OccluderConfig}
 
 
 def _from_dict(kind: type, data: Mapping[str, Any], where: str) -> Any:
@@ -618,6 +627,52 @@ def environment_layers(view: View, quantities: PixelQuantities, sun_radiance: np
                                np.ones(view.shape), quantities.cosine, radiance, labels)
 
 
+def _steps_2_3(scene: Scene, quantities: Mapping[str, PixelQuantities], *, config: Config, progress: bool,
+               tasks: _ViewTasks | None, inputs: Any, timings: dict[str, float]) -> tuple:
+    """Steps 2 and 3 of :func:`decompose` on the given pixel quantities (seconds into ``timings``)."""
+    logger.info("step 2: sun calibration over %d views", len(scene.views))
+    start = time.perf_counter()
+    model: dict[str, ModelChoice] = {}
+    if config.sun.direct_sun == "always":  # calibrate(), its pairs found on the cluster
+        pairs = _sun_pairs(scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs)
+        sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
+    else:
+        pairs = _sun_pairs(scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs)
+        model["sun"] = choose_direct_sun(scene, quantities, pairs, config=config.sun)
+        sun_radiance = np.zeros(3)
+        if model["sun"].choice == "direct sun":
+            sun_radiance = calibrate_sun(pairs).sun_radiance
+        elif model["sun"].choice == "unknown":  # sunny, but Sec. 5 found no pair: fail as the paper does
+            sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
+    timings["sun_pairs"] = time.perf_counter() - start
+
+    if "sun" in model and model["sun"].choice == "direct sun":
+        model["shadows"] = choose_cast_shadows(scene, quantities, model["sun"].measures["edge_samples"],
+                                               config=config.sun)
+    no_sun = "sun" in model and model["sun"].choice == "no direct sun"
+    no_cast = "shadows" in model and model["shadows"].choice == "no cast shadow"
+    shared = step3_futures = None
+    solves: dict[str, list[dict]] = {}
+    if no_sun or (no_cast and config.steps > 2):  # Step 2 keeps the proxy's shadows
+        # Every pixel lit: R = I / S_env without direct sun (Eq. 2 with L_sun = 0), or
+        # R = I / (S_env + L_sun cos) without a cast shadow; nothing to label, no S_env to refine.
+        start = time.perf_counter()
+        layers = {view.stem: environment_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
+        timings["layers"] = time.perf_counter() - start
+    elif config.steps == 2:
+        start = time.perf_counter()
+        layers = {view.stem: step2_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
+        timings["layers"] = time.perf_counter() - start
+    else:
+        logger.info("step 3 (%s labelling) over %d views", config.shadow.method, len(scene.views))
+        layers, step3_timings, shared, step3_futures, solves = _step3_layers(
+            scene, quantities, sun_radiance, config=config, progress=progress, tasks=tasks, inputs=inputs)
+        if "scatter" in step3_timings:  # the labels' shipping adds to the inputs'
+            timings["scatter"] = timings.get("scatter", 0.0) + step3_timings.pop("scatter")
+        timings.update(step3_timings)
+    return sun_radiance, model, no_sun, no_cast, layers, shared, step3_futures, solves
+
+
 def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | None = None,
               progress: bool = False, client: Any = None) -> Decomposition:
     """Decompose every view of a scene into reflectance and shading layers (Steps 1-4).
@@ -708,46 +763,31 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         inputs = tasks.scatter({v.stem: (v, quantities[v.stem]) for v in scene.views})
         timings["scatter"] = time.perf_counter() - start
 
-    logger.info("step 2: sun calibration over %d views", len(scene.views))
-    start = time.perf_counter()
-    model: dict[str, ModelChoice] = {}
-    if config.sun.direct_sun == "always":  # calibrate(), its pairs found on the cluster
-        pairs = _sun_pairs(scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs)
-        sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
-    else:
-        pairs = _sun_pairs(scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs)
-        model["sun"] = choose_direct_sun(scene, quantities, pairs, config=config.sun)
-        sun_radiance = np.zeros(3)
-        if model["sun"].choice == "direct sun":
-            sun_radiance = calibrate_sun(pairs).sun_radiance
-        elif model["sun"].choice == "unknown":  # sunny, but Sec. 5 found no pair: fail as the paper does
-            sun_radiance = calibrate_sun(pairs, allow_missing=config.allow_missing_sun).sun_radiance
-    timings["sun_pairs"] = time.perf_counter() - start
+    sun_radiance, model, no_sun, no_cast, layers, shared, step3_futures, solves = _steps_2_3(
+        scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs, timings=timings)
 
-    if "sun" in model and model["sun"].choice == "direct sun":
-        model["shadows"] = choose_cast_shadows(scene, quantities, model["sun"].measures["edge_samples"],
-                                               config=config.sun)
-    no_sun = "sun" in model and model["sun"].choice == "no direct sun"
-    no_cast = "shadows" in model and model["shadows"].choice == "no cast shadow"
-    shared = step3_futures = None
-    solves: dict[str, list[dict]] = {}
-    if no_sun or (no_cast and config.steps > 2):  # Step 2 keeps the proxy's shadows
-        # Every pixel lit: R = I / S_env without direct sun (Eq. 2 with L_sun = 0), or
-        # R = I / (S_env + L_sun cos) without a cast shadow; nothing to label, no S_env to refine.
+    occluders = None
+    if config.occluders is not None and config.steps > 2 and not (no_sun or no_cast):
+        # Beyond the paper (mvintrinsic.occluders): the occluders the proxy lost, carved from Step 3's
+        # shadows and the photos, added to Step 1's hemisphere rays; then Steps 2 and 3 again.
+        logger.info("occluders: carving what the proxy lost, then Steps 2 and 3 again")
         start = time.perf_counter()
-        layers = {view.stem: environment_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
-        timings["layers"] = time.perf_counter() - start
-    elif config.steps == 2:
-        start = time.perf_counter()
-        layers = {view.stem: step2_layers(view, quantities[view.stem], sun_radiance) for view in scene.views}
-        timings["layers"] = time.perf_counter() - start
-    else:
-        logger.info("step 3 (%s labelling) over %d views", config.shadow.method, len(scene.views))
-        layers, step3_timings, shared, step3_futures, solves = _step3_layers(
-            scene, quantities, sun_radiance, config=config, progress=progress, tasks=tasks, inputs=inputs)
-        if "scatter" in step3_timings:  # the labels' shipping adds to the inputs'
-            timings["scatter"] += step3_timings.pop("scatter")
-        timings.update(step3_timings)
+        occluders = carve_occluders(scene.views, quantities, layers, s1.radiance, tracer, scene.sun.direction,
+                                    config=config.occluders)
+        timings["occluders.carve"] = time.perf_counter() - start
+        if len(occluders):
+            start = time.perf_counter()
+            s1 = occluded_step1(s1, tracer, occluders, rng=config.seed, progress=progress)
+            quantities = carry_to_pixels(scene, s1, tracer, progress=progress)
+            timings["occluders.shading"] = time.perf_counter() - start
+            if tasks is not None:  # the new quantities to the workers
+                start = time.perf_counter()
+                inputs = tasks.scatter({v.stem: (v, quantities[v.stem]) for v in scene.views})
+                timings["scatter"] += time.perf_counter() - start
+            again: dict[str, float] = {}
+            sun_radiance, model, no_sun, no_cast, layers, shared, step3_futures, solves = _steps_2_3(
+                scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs, timings=again)
+            timings.update({f"occluders.{k}": v for k, v in again.items()})
 
     if config.steps == 4:
         # Without cast-shadow boundaries the S_env offsets are skipped and the multi-view fusion,
@@ -789,5 +829,7 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         horizon_plane=s1.horizon.plane, envmap=s1.environment.radiance, exposure=gains,
         horizon_evidence=s1.horizon.evidence, model=model,
     )
-    diagnostics = {"matting": solves} if any(solves.values()) else {}  # a missed rtol was logged by the matting
+    diagnostics: dict[str, Any] = {"matting": solves} if any(solves.values()) else {}  # a missed rtol was logged
+    if occluders is not None:
+        diagnostics["occluders"] = {"voxels": len(occluders), "voxel": occluders.size, "rays": dict(occluders.counts)}
     return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config, diagnostics=diagnostics)

@@ -1,0 +1,395 @@
+"""Occluders the proxy lost, carved from the shadows and the photos (beyond the paper).
+
+An MVS proxy loses thin and porous occluders: tree crowns, poles, railings. Step 1 then integrates
+``S_sky`` and ``S_ind`` at the points under them as if nothing stood between them and the sky near
+the sun, the brightest part of it: in the umbra of our synthetic scenes ``S_env`` came out 35-114%
+above the truth, and Step 2's ``L_sun``, calibrated against it (Eq. 5), 1.45-2.51 times the truth
+(``docs/step4.md``). Adding the exact mesh's missing triangles to the proxy brought the demo's umbra
+error from +39/+54/+91% to within -17..+9% (an oracle study, ``docs/step4.md``).
+
+Once Step 3 has labelled the shadows, the lost occluders leave evidence a voxel grid can collect
+(a form of space carving, Kutulakos and Seitz 2000, with shadows as in Savarese et al. 2007):
+
+* **Sun rays.** A pixel labelled shadow whose proxy point the proxy leaves in the sun (``~v = 1``)
+  has an occluder somewhere along its ray toward the sun; a lit pixel has none along its own. Per
+  voxel, ``n_shadow`` and ``n_lit`` count the rays of each kind that cross it.
+* **Camera rays.** A pixel that sees the sky, or sees the proxy with the colour the proxy has there
+  (its vertices' median radiance, within ``consistency`` in log radiance), looks through empty
+  space up to that surface; a pixel of a surface the proxy lost (``filled``), or one whose colour
+  disagrees with the proxy behind it, may be looking at an occluder. Per voxel, ``n_free`` and
+  ``n_blocked`` count the camera rays of each kind that cross it.
+
+A voxel is an occluder when at least ``min_shadow_rays`` shadow rays cross it, shadow rays are
+more than ``shadow_share`` of its sun rays, the camera rays that cross it are blocked more than
+``camera_share`` of the time (or no camera ray crosses it: space no photo sees is not carved), and
+it lies more than ``clearance`` voxels from every proxy vertex (what the proxy holds is not added
+twice). One sun direction alone cannot tell where along a shadow ray the occluder sits; the
+camera rays carve the free part of each ray.
+
+:func:`occluded_step1` then integrates Step 1's ``S_sky`` and ``S_ind`` again against the proxy and
+the occluders (:func:`~mvintrinsic.env_shading.environment_shading`); a ray that hits an occluder
+brings its radiance (``OccluderConfig.radiance``: none by default; the photos show the side of a
+crown that faces the cameras, not the side that faces the ground below it). The pipeline runs
+Steps 2 and 3 again on the result (``Config.occluders``). Measurements: ``docs/step4.md``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field, replace
+from types import MappingProxyType
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ._validation import is_real
+from .env_shading import PointShading, Step1Result, environment_shading
+from .pixels import PixelQuantities
+from .raytrace import Tracer, interpolate_points, rasterize, voxel_subsample
+from .results import SHADOW_LABELS, IntrinsicLayers
+from .scene import Proxy, View
+
+__all__ = ["OCCLUDER_RADIANCE", "OccluderConfig", "Occluders", "carve_occluders", "occluded_step1"]
+
+#: What a hemisphere ray that hits an occluder brings (:class:`OccluderConfig`).
+OCCLUDER_RADIANCE = ("zero", "observed")
+
+
+@dataclass(frozen=True)
+class OccluderConfig:
+    """Options of the lost-occluder carving (not in the paper; module docstring).
+
+    Parameters
+    ----------
+    voxel : float
+        Edge of the voxels, metres.
+    margin : float
+        Metres the grid extends beyond the bounding box of the proxy and the camera centres on
+        every side.
+    min_shadow_rays : int
+        Fewest shadow rays that must cross an occluder voxel.
+    shadow_share : float
+        Share of a voxel's sun rays that must come from shadow pixels, in (0, 1).
+    camera_share : float
+        Share of the camera rays crossing a voxel that must be blocked (not sky, not consistent
+        with the proxy behind), in (0, 1).
+    consistency : float
+        Median over R, G, B of ``|log I - log radiance|`` below which a pixel is consistent with
+        the proxy surface it sees (about 35%).
+    clearance : float
+        Voxels (edge lengths) an occluder keeps from every proxy vertex.
+    ray_start : float
+        Metres along a sun ray before its voxels count (off the receiver's own surface).
+    shadow_visibility, lit_visibility : float
+        A shadow pixel has ``v_sun`` below the first, a lit pixel above the second.
+    radiance : {"zero", "observed"}
+        What a hemisphere ray that hits an occluder brings to ``S_ind``: nothing (default), or the
+        mean colour of the pixels whose camera rays first hit the voxel (voxels no pixel sees take
+        their nearest seen voxel's). On demo_480 the umbra's ``S_env`` was +2/+5/+18% off with
+        ``"zero"`` and +22/+27/+38% with ``"observed"`` (``docs/step4.md``): the photos see the
+        sunlit outside of a crown, the ground below it sees its dark underside.
+    max_voxels : int
+        Largest grid (voxels); the voxel edge grows to stay within it.
+    """
+
+    voxel: float = 0.25
+    margin: float = 2.0
+    min_shadow_rays: int = 2
+    shadow_share: float = 0.5
+    camera_share: float = 0.5
+    consistency: float = 0.3
+    clearance: float = 1.5
+    ray_start: float = 0.3
+    shadow_visibility: float = 0.5
+    lit_visibility: float = 0.9
+    radiance: str = "zero"
+    max_voxels: int = 20_000_000
+
+    def __post_init__(self) -> None:
+        for name in ("voxel", "consistency", "clearance"):
+            value = getattr(self, name)
+            if not is_real(value) or not 0 < value < np.inf:
+                raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+        for name in ("margin", "ray_start"):
+            value = getattr(self, name)
+            if not is_real(value) or not 0 <= value < np.inf:
+                raise ValueError(f"{name} must be a finite number >= 0 (metres), got {value!r}")
+        for name in ("shadow_share", "camera_share", "shadow_visibility", "lit_visibility"):
+            value = getattr(self, name)
+            if not is_real(value) or not 0 < value < 1:
+                raise ValueError(f"{name} must be in (0, 1), got {value!r}")
+        for name in ("min_shadow_rays", "max_voxels"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ValueError(f"{name} must be a positive integer, got {value!r}")
+        if self.radiance not in OCCLUDER_RADIANCE:
+            raise ValueError(f"radiance must be one of {', '.join(map(repr, OCCLUDER_RADIANCE))}, got {self.radiance!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Occluders:
+    """Voxels of occluders the proxy lost, world frame.
+
+    Parameters
+    ----------
+    centres : (K, 3) float64
+        Voxel centres, metres.
+    size : float
+        Voxel edge, metres.
+    radiance : (K, 3) float32
+        What a hemisphere ray that hits the voxel brings (:attr:`OccluderConfig.radiance`), in the
+        views' radiance units.
+    counts : mapping of str to int
+        Rays used: ``shadow``, ``lit`` (sun rays), ``free``, ``blocked`` (camera rays).
+    seconds : float
+        Time spent carving.
+    """
+
+    centres: np.ndarray
+    size: float
+    radiance: np.ndarray
+    counts: Mapping[str, int] = field(default_factory=dict)
+    seconds: float = 0.0
+
+    def __len__(self) -> int:
+        return len(self.centres)
+
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """The voxels as closed cubes: ``vertices (8K, 3) float64`` and ``triangles (12K, 3) int64``
+        (eight vertices and twelve triangles per voxel, in voxel order)."""
+        h = self.size / 2.0
+        corners = np.array([[x, y, z] for x in (-h, h) for y in (-h, h) for z in (-h, h)])
+        vertices = (self.centres[:, None, :] + corners[None]).reshape(-1, 3)
+        faces = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                          [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+        triangles = (np.arange(len(self.centres))[:, None, None] * 8 + faces[None]).reshape(-1, 3)
+        return vertices, triangles.astype(np.int64)
+
+    def __repr__(self) -> str:
+        return f"Occluders({len(self)} voxels of {self.size:g} m, {dict(self.counts)})"
+
+
+class _Grid:
+    """An axis-aligned voxel grid (world frame) and ray counts per voxel."""
+
+    def __init__(self, low: np.ndarray, high: np.ndarray, voxel: float, max_voxels: int) -> None:
+        extent = np.maximum(high - low, 1e-6)
+        voxel = max(voxel, float(np.cbrt(np.prod(extent) / max_voxels)))
+        self.low, self.voxel = low, voxel
+        self.dims = np.maximum(np.ceil(extent / voxel).astype(np.int64), 1)
+        self.size = int(np.prod(self.dims))
+        self._span = float(np.linalg.norm(self.dims * voxel))
+
+    def count(self, origins: np.ndarray, directions: np.ndarray, t_start: float | np.ndarray,
+              t_end: float | np.ndarray, *, chunk: int = 8192) -> np.ndarray:
+        """Rays crossing each voxel (each ray counted once per voxel), (size,) float64: samples
+        every half voxel along ``origins + t directions`` for ``t_start <= t < t_end``."""
+        out = np.zeros(self.size)
+        n = len(origins)
+        if n == 0:
+            return out
+        step = 0.5 * self.voxel
+        offsets = (np.arange(int(self._span / step) + 1) + 0.5) * step
+        start = np.broadcast_to(np.asarray(t_start, dtype=np.float64), (n,))
+        end = np.broadcast_to(np.asarray(t_end, dtype=np.float64), (n,))
+        for a in range(0, n, chunk):
+            t = start[a:a + chunk, None] + offsets[None, :]
+            inside = t < end[a:a + chunk, None]
+            points = origins[a:a + chunk, None, :] + t[..., None] * directions[a:a + chunk, None, :]
+            ijk = np.floor((points - self.low) / self.voxel).astype(np.int64)
+            inside &= ((ijk >= 0) & (ijk < self.dims)).all(axis=-1)
+            flat = np.ravel_multi_index(tuple(np.clip(ijk, 0, self.dims - 1).transpose(2, 0, 1)), self.dims)
+            flat = np.where(inside, flat, -1)
+            first = np.ones_like(inside)
+            first[:, 1:] = flat[:, 1:] != flat[:, :-1]  # consecutive samples in one voxel count once
+            out += np.bincount(flat[inside & first], minlength=self.size)
+        return out
+
+    def centres(self, index: np.ndarray) -> np.ndarray:
+        return self.low + (np.stack(np.unravel_index(index, self.dims), axis=1) + 0.5) * self.voxel
+
+
+def _check(views: Sequence[View], quantities: Mapping[str, PixelQuantities],
+           layers: Mapping[str, IntrinsicLayers]) -> None:
+    for view in views:
+        if view.stem not in quantities or view.stem not in layers:
+            raise ValueError(f"quantities and layers must hold view {view.stem!r}")
+        if quantities[view.stem].shape != view.shape or layers[view.stem].shape != view.shape:
+            raise ValueError(f"quantities and layers of view {view.stem!r} must have its shape {view.shape}")
+
+
+def carve_occluders(
+    views: Sequence[View],
+    quantities: Mapping[str, PixelQuantities],
+    layers: Mapping[str, IntrinsicLayers],
+    radiance: np.ndarray,
+    tracer: Tracer,
+    sun_direction: np.ndarray,
+    *,
+    config: OccluderConfig | None = None,
+) -> Occluders:
+    """Voxels of the occluders the proxy lost, from Step 3's shadows and the photos (module docstring).
+
+    Parameters
+    ----------
+    views : sequence of View
+    quantities : mapping of str to PixelQuantities
+        Step 1's per-pixel quantities of every view (``~v``, depth, sky and filled masks).
+    layers : mapping of str to IntrinsicLayers
+        Step 3's layers of every view (``shadow_labels`` and ``v_sun``).
+    radiance : (N, 3) array_like
+        Median radiance of every proxy vertex (:attr:`Step1Result.radiance`, NaN: unseen).
+    tracer : Tracer
+        Over the proxy.
+    sun_direction : (3,) array_like
+        Unit vector toward the sun, world frame.
+    config : OccluderConfig, optional
+
+    Returns
+    -------
+    Occluders
+        Possibly empty.
+    """
+    config = config or OccluderConfig()
+    _check(views, quantities, layers)
+    start = time.perf_counter()
+    sun = np.asarray(sun_direction, dtype=np.float64)
+    vertices = np.asarray(tracer.proxy.vertices, dtype=np.float64)
+    extent = np.vstack([vertices, [view.camera.center for view in views]])  # occluders above the proxy
+    grid = _Grid(extent.min(axis=0) - config.margin, extent.max(axis=0) + config.margin, config.voxel,
+                 config.max_voxels)
+    shadow_rays, lit_rays = np.zeros(grid.size), np.zeros(grid.size)
+    free_rays, blocked_rays = np.zeros(grid.size), np.zeros(grid.size)
+    counts = {"shadow": 0, "lit": 0, "free": 0, "blocked": 0}
+    looks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+    for view in views:
+        q, layer, camera = quantities[view.stem], layers[view.stem], view.camera
+        rays = camera.pixel_rays().reshape(*camera.shape, 3)
+        depth = q.depth.astype(np.float64)
+        on_proxy = q.valid & ~q.filled & np.isfinite(depth)
+        points = camera.center + np.where(on_proxy, depth, 0.0)[..., None] * rays + 0.05 * q.normals
+        labels, v = layer.shadow_labels, layer.visibility
+        # shadowed, though the proxy leaves the point in the sun (and it faces the sun)
+        shadow = on_proxy & (labels == SHADOW_LABELS["shadow"]) & (v < config.shadow_visibility) \
+            & (q.visibility > 0.5) & (q.cosine > 0.05)
+        lit = on_proxy & (labels == SHADOW_LABELS["lit"]) & (v > config.lit_visibility)
+        for mask, acc, name in ((shadow, shadow_rays, "shadow"), (lit, lit_rays, "lit")):
+            acc += grid.count(points[mask], np.broadcast_to(sun, (int(mask.sum()), 3)), config.ray_start, np.inf)
+            counts[name] += int(mask.sum())
+        expected = rasterize(radiance, camera, tracer)  # the proxy's radiance behind each pixel
+        image = np.asarray(view.image, dtype=np.float64)
+        with np.errstate(invalid="ignore"):
+            distance = np.median(np.abs(np.log(image + 1e-3) - np.log(np.abs(expected) + 1e-3)), axis=-1)
+        consistent = on_proxy & (distance < config.consistency)  # NaN (unseen vertices): not consistent
+        blocked = (on_proxy & ~consistent) | q.filled
+        reach = np.where(q.filled, np.inf, depth - 0.3)  # up to the surface behind
+        centre = camera.center[None]
+        for mask, end, acc, name in ((q.sky_mask, np.inf, free_rays, "free"), (consistent, reach, free_rays, "free"),
+                                     (blocked, reach, blocked_rays, "blocked")):
+            n = int(mask.sum())
+            acc += grid.count(np.repeat(centre, n, axis=0), rays[mask], 0.0,
+                              reach[mask] if isinstance(end, np.ndarray) else end)
+            counts[name] += n
+        looks.append((camera.center, rays[blocked], image[blocked], reach[blocked]))
+    seen = free_rays + blocked_rays
+    occupied = (shadow_rays >= config.min_shadow_rays) \
+        & (shadow_rays > config.shadow_share * (shadow_rays + lit_rays)) \
+        & ((blocked_rays > config.camera_share * seen) | (seen == 0))
+    index = np.flatnonzero(occupied)
+    centres = grid.centres(index)
+    if len(centres):  # what the proxy holds is not added twice
+        near, _ = cKDTree(vertices).query(centres, distance_upper_bound=config.clearance * grid.voxel)
+        centres = centres[~np.isfinite(near)]
+    occluders = Occluders(centres=centres, size=grid.voxel, radiance=np.zeros((len(centres), 3), np.float32),
+                          counts=MappingProxyType(counts))
+    if config.radiance == "observed" and len(centres):
+        occluders = replace(occluders, radiance=_observed_radiance(occluders, looks))
+    for array in (occluders.centres, occluders.radiance):
+        array.flags.writeable = False
+    return replace(occluders, seconds=time.perf_counter() - start)
+
+
+def _observed_radiance(occluders: Occluders, looks: Sequence[tuple]) -> np.ndarray:
+    """Mean colour of the blocked pixels whose camera rays first hit each voxel; the nearest seen
+    voxel's where none does; zero when no voxel is seen. (K, 3) float32."""
+    vertices, triangles = occluders.mesh()
+    cubes = Tracer(_mesh_proxy(vertices, triangles))
+    total = np.zeros((len(occluders), 3))
+    n = np.zeros(len(occluders))
+    for centre, rays, colours, reach in looks:
+        hits = cubes.intersect(centre, rays)
+        ok = hits.hit & (hits.t < reach)
+        voxel = hits.triangle[ok] // 12
+        np.add.at(total, voxel, colours[ok])
+        np.add.at(n, voxel, 1.0)
+    seen = n > 0
+    out = np.zeros((len(occluders), 3))
+    if seen.any():
+        out[seen] = total[seen] / n[seen, None]
+        if not seen.all():
+            _, nearest = cKDTree(occluders.centres[seen]).query(occluders.centres[~seen])
+            out[~seen] = out[seen][nearest]
+    return out.astype(np.float32)
+
+
+def _mesh_proxy(vertices: np.ndarray, triangles: np.ndarray) -> Proxy:
+    normals = np.zeros_like(vertices)
+    normals[:, 2] = 1.0  # unused: hits take the triangles' geometric normals
+    return Proxy(vertices=vertices, normals=normals, triangles=triangles)
+
+
+def occluded_step1(step1_result: Step1Result, tracer: Tracer, occluders: Occluders, *,
+                   rng: np.random.Generator | int | None = None, progress: bool = False) -> Step1Result:
+    """Step 1's ``S_sky`` and ``S_ind`` integrated again against the proxy and the occluders.
+
+    The same hemisphere rays as :func:`~mvintrinsic.env_shading.step1` (its config's ray count,
+    offset, attenuation, voxel subsample and interpolation) at the proxy vertices, cast against the
+    proxy plus the occluders' cubes; a ray that hits a cube brings the voxel's
+    :attr:`Occluders.radiance`. ``~v``, the cosine, the environment map and the vertex radiance are
+    kept.
+
+    Parameters
+    ----------
+    step1_result : Step1Result
+    tracer : Tracer
+        Over the proxy of ``step1_result``.
+    occluders : Occluders
+    rng : numpy.random.Generator or int, optional
+        Seeds the hemisphere sampling.
+    progress : bool, optional
+
+    Returns
+    -------
+    Step1Result
+        ``step1_result`` with the new shading, and ``timings["occluded_shading"]``; itself when
+        there is no occluder.
+    """
+    if not len(occluders):
+        return step1_result
+    start = time.perf_counter()
+    config = step1_result.config
+    proxy = tracer.proxy
+    cube_vertices, cube_triangles = occluders.mesh()
+    if proxy.triangles is None:
+        raise ValueError("tracer: occluders can only be added to a triangle-mesh proxy")
+    both = Proxy(vertices=np.vstack([proxy.vertices, cube_vertices]),
+                 normals=np.vstack([proxy.normals, np.tile([0.0, 0.0, 1.0], (len(cube_vertices), 1))]),
+                 triangles=np.vstack([proxy.triangles, cube_triangles + len(proxy.vertices)]))
+    radiance = np.vstack([step1_result.radiance, np.repeat(occluders.radiance, 8, axis=0)])
+    points, normals = np.asarray(proxy.vertices, dtype=np.float64), step1_result.normals
+    traced = np.arange(len(points)) if config.subsample is None else voxel_subsample(points, config.subsample)
+    sky, indirect = environment_shading(
+        points[traced], normals[traced], Tracer(both), step1_result.environment, radiance, n_rays=config.n_rays,
+        ray_offset=config.ray_offset, attenuation=config.indirect_attenuation, rng=rng,
+        batch_rays=config.batch_rays, progress=progress, tolerance=config.ray_tolerance, max_rays=config.max_rays)
+    if len(traced) < len(points):
+        values = interpolate_points(points[traced], normals[traced], np.concatenate([sky, indirect], axis=1),
+                                    points, normals, neighbors=config.interpolation_neighbors)
+        sky, indirect = values[:, :3].astype(np.float32), values[:, 3:].astype(np.float32)
+    for array in (sky, indirect):
+        array.flags.writeable = False
+    shading = PointShading(sky=sky, indirect=indirect, visibility=step1_result.shading.visibility,
+                           cosine=step1_result.shading.cosine)
+    timings = dict(step1_result.timings, occluded_shading=time.perf_counter() - start)
+    return replace(step1_result, shading=shading, timings=MappingProxyType(timings))

@@ -1,0 +1,155 @@
+"""The occluders the proxy lost, carved from shadows and photos (mvintrinsic.occluders).
+
+Exact case: a ground plane is the proxy; a slab floating above it (a tree crown the MVS lost) is
+missing from it but casts its shadow and is seen by four cameras. Then the demo scene, where the
+proxy lost the tree: the umbra's ``S_env`` and ``L_sun`` move toward the truth.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import look_at
+
+from mvintrinsic import Proxy
+from mvintrinsic.camera import Camera
+from mvintrinsic.occluders import OccluderConfig, Occluders, carve_occluders
+from mvintrinsic.pixels import PixelQuantities
+from mvintrinsic.raytrace import Tracer
+from mvintrinsic.results import SHADOW_LABELS, IntrinsicLayers
+from mvintrinsic.scene import View
+
+W, H = 128, 96
+SLAB_LOW, SLAB_HIGH = np.array([-0.8, -0.8, 2.5]), np.array([0.8, 0.8, 3.1])
+SUN = np.array([np.cos(np.radians(50)) * np.cos(np.radians(150)), np.cos(np.radians(50)) * np.sin(np.radians(150)),
+                np.sin(np.radians(50))])
+LIT, DARK, SLAB, SKY = 0.5, 0.15, 0.05, np.array([0.5, 0.6, 0.9])
+SHADOW_IOU = 0.75  # the voxels' shadow on the ground against the slab's, 0.25 m voxels (measured 0.80:
+# whole voxels over the slab's edges widen it by about half a voxel; the slab's shadow is inside it)
+SHADOW_IOU_FINE = 0.85  # the same with 0.1 m voxels (measured 0.91)
+RECALL = 0.95  # share of the slab's shadow the voxels' shadow covers (measured 1.00 and 0.997)
+INSIDE = 0.8  # share of the voxels within one voxel of the slab (measured 0.95 and 0.87)
+
+
+def _mesh(low, high, subdivisions=0):
+    import open3d as o3d
+
+    box = o3d.geometry.TriangleMesh.create_box(*(high - low)).translate(low)
+    return box.subdivide_midpoint(subdivisions) if subdivisions else box
+
+
+def _proxy(mesh) -> Proxy:
+    mesh.compute_vertex_normals()
+    return Proxy(np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals), np.asarray(mesh.triangles))
+
+
+def _ground():
+    return _mesh(np.array([-6.0, -6.0, -0.01]), np.array([6.0, 6.0, 0.0]), subdivisions=5)
+
+
+@pytest.fixture(scope="module")
+def world():
+    """The proxy (ground only), its tracer, the exact tracer (ground and slab) and four views."""
+    proxy_tracer = Tracer(_proxy(_ground()))
+    exact = Tracer(_proxy(_ground() + _mesh(SLAB_LOW, SLAB_HIGH)))
+    vertices = proxy_tracer.proxy.vertices
+    in_shadow = exact.occluded(vertices + [0, 0, 1e-3], np.broadcast_to(SUN, vertices.shape))
+    radiance = np.where(in_shadow[:, None], DARK, LIT) * np.ones((1, 3))
+    views, quantities, layers = [], {}, {}
+    for k, (x, y) in enumerate([(6.0, 5.0), (-6.0, 5.0), (6.0, -5.0), (-6.0, -5.0)]):
+        rotation, translation = look_at(np.array([x, y, 2.0]), np.array([0.0, 0.0, 1.2]))
+        camera = Camera("PINHOLE", W, H, [0.7 * W, 0.7 * W, W / 2, H / 2], rotation, translation)
+        stem = f"v{k}"
+        rays = camera.pixel_rays()
+        seen = proxy_tracer.intersect(camera.center, rays)
+        truth = exact.intersect(camera.center, rays)
+        on_slab = (truth.hit & (truth.points[:, 2] > 1.0)).reshape(H, W)
+        ground = seen.hit.reshape(H, W) & ~on_slab
+        points = seen.points.reshape(H, W, 3)
+        shadow = ground & exact.occluded(points.reshape(-1, 3) + [0, 0, 1e-3],
+                                         np.broadcast_to(SUN, (H * W, 3))).reshape(H, W)
+        sky = ~seen.hit.reshape(H, W) & ~on_slab
+        image = np.where(sky[..., None], SKY, np.where(on_slab[..., None], SLAB, np.where(shadow, DARK, LIT)[..., None]))
+        valid = ~sky
+        zeros = np.zeros((H, W, 3), np.float32)
+        quantities[stem] = PixelQuantities(
+            stem=stem, sky=zeros, indirect=zeros, visibility=np.ones((H, W), np.float32),
+            cosine=np.where(seen.hit.reshape(H, W), SUN[2], 0.0).astype(np.float32),
+            normals=np.where(seen.hit.reshape(H, W, 1), [0.0, 0.0, 1.0], 0.0).astype(np.float32),
+            depth=np.where(seen.hit, seen.t, np.inf).reshape(H, W).astype(np.float32),
+            sky_mask=sky, filled=valid & ~seen.hit.reshape(H, W), valid=valid)
+        labels = np.where(shadow, SHADOW_LABELS["shadow"], np.where(ground, SHADOW_LABELS["lit"],
+                                                                    SHADOW_LABELS["undecided"])).astype(np.uint8)
+        layers[stem] = IntrinsicLayers(stem, reflectance=zeros, sun_shading=zeros, sky_shading=zeros,
+                                       indirect_shading=zeros, visibility=(ground & ~shadow).astype(np.float32),
+                                       shadow_labels=labels)
+        views.append(View(stem, image.astype(np.float32), camera))
+    return proxy_tracer, exact, radiance, views, quantities, layers
+
+
+def _shadow_of(occluders: Occluders, points: np.ndarray) -> np.ndarray:
+    vertices, triangles = occluders.mesh()
+    tracer = Tracer(Proxy(vertices, np.tile([0.0, 0.0, 1.0], (len(vertices), 1)), triangles))
+    return tracer.occluded(points + [0, 0, 1e-3], np.broadcast_to(SUN, points.shape))
+
+
+@pytest.mark.parametrize(("voxel", "min_iou"), [(0.25, SHADOW_IOU), (0.1, SHADOW_IOU_FINE)])
+def test_the_lost_slab_is_carved_where_it_stands(world, voxel, min_iou):
+    proxy_tracer, exact, radiance, views, quantities, layers = world
+    occluders = carve_occluders(views, quantities, layers, radiance, proxy_tracer, SUN,
+                                config=OccluderConfig(voxel=voxel))
+    assert len(occluders) > 0
+    size = occluders.size
+    inside = ((occluders.centres >= SLAB_LOW - size) & (occluders.centres <= SLAB_HIGH + size)).all(axis=1)
+    assert inside.mean() >= INSIDE
+    # the voxels shade the ground as the slab does
+    grid = np.stack(np.meshgrid(np.linspace(-4, 4, 81), np.linspace(-4, 4, 81)), -1).reshape(-1, 2)
+    points = np.column_stack([grid, np.zeros(len(grid))])
+    truth = exact.occluded(points + [0, 0, 1e-3], np.broadcast_to(SUN, points.shape))
+    ours = _shadow_of(occluders, points)
+    assert (truth & ours).sum() / (truth | ours).sum() >= min_iou
+    assert (truth & ours).sum() / truth.sum() >= RECALL
+    assert occluders.counts["shadow"] > 0 and occluders.counts["free"] > 0
+    assert not occluders.centres.flags.writeable
+    assert occluders.radiance.shape == (len(occluders), 3) and not occluders.radiance.any()  # "zero"
+
+
+def test_observed_radiance_is_the_slabs_colour(world):
+    proxy_tracer, _, radiance, views, quantities, layers = world
+    occluders = carve_occluders(views, quantities, layers, radiance, proxy_tracer, SUN,
+                                config=OccluderConfig(radiance="observed"))
+    np.testing.assert_allclose(np.median(occluders.radiance, axis=0), SLAB, rtol=1e-5)
+
+
+def test_no_shadow_no_occluder(world):
+    proxy_tracer, _, radiance, views, quantities, layers = world
+    lit = {s: IntrinsicLayers(s, reflectance=l.reflectance, sun_shading=l.sun_shading, sky_shading=l.sky_shading,
+                              indirect_shading=l.indirect_shading, visibility=np.ones(l.shape, np.float32),
+                              shadow_labels=np.where(l.shadow_labels == 0, 255, l.shadow_labels).astype(np.uint8))
+           for s, l in layers.items()}
+    assert len(carve_occluders(views, quantities, lit, radiance, proxy_tracer, SUN)) == 0
+
+
+def test_mesh_is_closed_cubes():
+    occluders = Occluders(centres=np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), size=0.5, radiance=np.zeros((2, 3)))
+    vertices, triangles = occluders.mesh()
+    assert vertices.shape == (16, 3) and triangles.shape == (24, 3)
+    np.testing.assert_allclose(vertices[:8].min(axis=0), [-0.25, -0.25, -0.25])
+    np.testing.assert_allclose(vertices[8:].max(axis=0), [2.25, 0.25, 0.25])
+    edges = np.sort(np.concatenate([triangles[:, [0, 1]], triangles[:, [1, 2]], triangles[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).all()  # every edge shared by two triangles: closed
+
+
+def test_mismatched_inputs_name_the_argument(world):
+    proxy_tracer, _, radiance, views, quantities, layers = world
+    with pytest.raises(ValueError, match="quantities and layers"):
+        carve_occluders(views, {}, layers, radiance, proxy_tracer, SUN)
+
+
+@pytest.mark.parametrize(("field", "value"), [("voxel", 0.0), ("voxel", np.inf), ("shadow_share", 1.0),
+                                              ("camera_share", 0.0), ("min_shadow_rays", 0), ("radiance", "mean"),
+                                              ("margin", -1.0), ("max_voxels", 2.5)])
+def test_config_errors_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        OccluderConfig(**{field: value})

@@ -19,7 +19,11 @@ variant, mean over views:
 * ``L_sun`` over the truth per channel: Step 2's, and Eq. 5 recomputed with the variant's ``S_env``
   (:func:`mvintrinsic.pipeline.calibrate` on the pixel quantities with ``S_sky`` and ``S_ind``
   replaced by the layers');
-* Step 4's seconds per view (correspondences found here; ``decompose`` reuses the labelling's).
+* Step 4's seconds per view (correspondences found here; ``decompose`` reuses the labelling's);
+* the same measures for Steps 1-4 with the lost occluders carved after Step 3 and Steps 2-3 run
+  again (``Config(occluders=OccluderConfig())``, :mod:`mvintrinsic.occluders`; variant
+  ``occluders``), with its own ``L_sun`` over the truth and its seconds per view for the whole
+  decomposition (``step3_seconds_per_view``: Steps 1-3 without it).
 
 ``--timing SCENE`` decomposes SCENE (e.g. ``DIR/courtyard_1000``, 1000x750) with the default
 configuration and reports Step 4's seconds per view from ``decompose``'s timings. ``--smoke``
@@ -52,6 +56,7 @@ from mvintrinsic.evaluation import (
     umbra_mask,
 )
 from mvintrinsic.io import load_scene, save_decomposition, write_json
+from mvintrinsic.occluders import OccluderConfig
 from mvintrinsic.pipeline import calibrate, carry_to_pixels, step4
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.sun_calibration import SunCalibrationError
@@ -96,7 +101,9 @@ def bench_scene(folder: Path) -> dict:
     scene = load_scene(folder)
     n = len(scene.views)
     tracer = Tracer(scene.proxy)
+    start = time.perf_counter()
     base = decompose(scene, config=Config(steps=3), tracer=tracer)
+    base_seconds = (time.perf_counter() - start) / n
     # The same seeded Step 1 as decompose's: the per-pixel quantities Step 4 and the spread need.
     quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
     truth = read_ground_truth(folder, views=list(scene.stems))
@@ -111,6 +118,10 @@ def bench_scene(folder: Path) -> dict:
         refined = step4(scene, quantities, base.layers, config=Config(env_refine=EnvRefineConfig(method=method)))
         seconds = (time.perf_counter() - start) / n
         variants[f"step4_{method}"] = (dataclasses.replace(base, layers=dict(refined.layers)), seconds)
+    start = time.perf_counter()
+    variants["occluders"] = (decompose(scene, config=Config(occluders=OccluderConfig()), tracer=tracer),
+                             (time.perf_counter() - start) / n)
+    out["step3_seconds_per_view"] = base_seconds
     for name, (result, seconds) in variants.items():
         entry = _score(folder, scene, result)
         entry["env_umbra"] = _env(folder, result.layers, umbra)
@@ -118,6 +129,9 @@ def bench_scene(folder: Path) -> dict:
         entry["lsun_ratio_eq5"] = _lsun_ratio(scene, quantities, result.layers, true_sun)
         if seconds is not None:
             entry["seconds_per_view"] = seconds
+        if name == "occluders":
+            entry["lsun_ratio"] = (np.asarray(result.lighting.sun_radiance) / true_sun).tolist()
+            entry["occluders"] = result.diagnostics.get("occluders")
         out[name] = entry
         print(f"{folder.name:14s} {name:16s} LMSE R {entry['lmse_reflectance']:.4f} S {entry['lmse_shading']:.4f}  "
               f"umbra S_env {np.round(entry['env_umbra']['median_signed_rel_error'], 3)}  "
@@ -155,7 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     if not names and args.timing is None:
         parser.error("give --scene, --smoke or --timing")
     report = {"benchmark": "step4", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
-              "python": platform.python_version(), "config": Config().env_refine.__dict__, "scenes": {}}
+              "python": platform.python_version(), "config": Config().env_refine.__dict__,
+              "occluders": OccluderConfig().__dict__, "scenes": {}}
     for name in names:
         if name == "demo":
             folder = demo_scene_path()

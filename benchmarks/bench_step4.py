@@ -21,9 +21,15 @@ variant, mean over views:
   replaced by the layers');
 * Step 4's seconds per view (correspondences found here; ``decompose`` reuses the labelling's);
 * the same measures for Steps 1-4 with the lost occluders carved after Step 3 and Steps 2-3 run
-  again (``Config(occluders=OccluderConfig())``, :mod:`mvintrinsic.occluders`; variant
-  ``occluders``), with its own ``L_sun`` over the truth and its seconds per view for the whole
-  decomposition (``step3_seconds_per_view``: Steps 1-3 without it).
+  again on every scene (``Config(occluders=OccluderConfig(when="always"))``,
+  :mod:`mvintrinsic.occluders`; variant ``occluders``), with its own ``L_sun`` over the truth, the
+  share of the labelled shadow the proxy leaves in the sun (on which ``when="auto"``, the
+  default, decides) and its seconds per view for the whole decomposition
+  (``step3_seconds_per_view``: Steps 1-3 without it).
+
+Every other variant runs without the carving (``Config(occluders=None)``): the default
+configuration is the ``occluders`` variant where the share is at least
+``OccluderConfig.min_unexplained`` and ``step4_multiview`` elsewhere.
 
 ``--timing SCENE`` decomposes SCENE (e.g. ``DIR/courtyard_1000``, 1000x750) with the default
 configuration and reports Step 4's seconds per view from ``decompose``'s timings. ``--smoke``
@@ -102,7 +108,7 @@ def bench_scene(folder: Path) -> dict:
     n = len(scene.views)
     tracer = Tracer(scene.proxy)
     start = time.perf_counter()
-    base = decompose(scene, config=Config(steps=3), tracer=tracer)
+    base = decompose(scene, config=Config(steps=3, occluders=None), tracer=tracer)
     base_seconds = (time.perf_counter() - start) / n
     # The same seeded Step 1 as decompose's: the per-pixel quantities Step 4 and the spread need.
     quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
@@ -119,7 +125,7 @@ def bench_scene(folder: Path) -> dict:
         seconds = (time.perf_counter() - start) / n
         variants[f"step4_{method}"] = (dataclasses.replace(base, layers=dict(refined.layers)), seconds)
     start = time.perf_counter()
-    variants["occluders"] = (decompose(scene, config=Config(occluders=OccluderConfig()), tracer=tracer),
+    variants["occluders"] = (decompose(scene, config=Config(occluders=OccluderConfig(when="always")), tracer=tracer),
                              (time.perf_counter() - start) / n)
     out["step3_seconds_per_view"] = base_seconds
     for name, (result, seconds) in variants.items():
@@ -132,6 +138,7 @@ def bench_scene(folder: Path) -> dict:
         if name == "occluders":
             entry["lsun_ratio"] = (np.asarray(result.lighting.sun_radiance) / true_sun).tolist()
             entry["occluders"] = result.diagnostics.get("occluders")
+            entry["unexplained_share"] = result.lighting.model["occluders"].measures["unexplained_share"]
         out[name] = entry
         print(f"{folder.name:14s} {name:16s} LMSE R {entry['lmse_reflectance']:.4f} S {entry['lmse_shading']:.4f}  "
               f"umbra S_env {np.round(entry['env_umbra']['median_signed_rel_error'], 3)}  "

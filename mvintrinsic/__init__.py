@@ -22,6 +22,7 @@ from .env_refine import Step4Result  # noqa: E402
 from .env_shading import Step1Result, step1  # noqa: E402
 from .io import demo_scene_path, load_decomposition, load_scene, save_decomposition  # noqa: E402
 from .multiview_shadows import PixelShadowLabels  # noqa: E402
+from .occluders import OccluderConfig, Occluders, carve_occluders, occluded_step1  # noqa: E402
 from .pipeline import (  # noqa: E402
     Config,
     Step3View,
@@ -50,6 +51,8 @@ __all__ = [
     "Decomposition",
     "IntrinsicLayers",
     "Lighting",
+    "OccluderConfig",
+    "Occluders",
     "PixelQuantities",
     "PixelShadowLabels",
     "Proxy",
@@ -67,11 +70,13 @@ __all__ = [
     "__version__",
     "calibrate",
     "carry_to_pixels",
+    "carve_occluders",
     "decompose",
     "demo_scene_path",
     "label_layers",
     "load_decomposition",
     "load_scene",
+    "occluded_step1",
     "save_decomposition",
     "step1",
     "step2_layers",

@@ -24,13 +24,14 @@ import numpy as np
 
 from ._validation import config_or_default
 from .env_refine import EnvRefineConfig
+from .occluders import OccluderConfig, unexplained_shadow_share
 from .pixels import PixelQuantities
 from .results import SHADOW_LABELS, IntrinsicLayers, ModelChoice
 from .scene import Scene
 from .skymodel import SkyModel
 from .sun_calibration import SunConfig, SunPairs, direct_sun_evidence
 
-__all__ = ["ATTACHED_COSINE", "EDGE_BAND", "MIN_CONTRAST_SAMPLES", "choose_cast_shadows", "choose_direct_sun",
+__all__ = ["ATTACHED_COSINE", "EDGE_BAND", "MIN_CONTRAST_SAMPLES", "choose_cast_shadows", "choose_direct_sun", "choose_occluders",
            "choose_step4", "sky_choice"]
 
 logger = logging.getLogger(__name__)
@@ -198,3 +199,24 @@ def choose_step4(layers: Mapping[str, IntrinsicLayers], config: EnvRefineConfig,
         return ModelChoice("fusion only", evidence + ": no S_env to refine at a boundary; the reflectance "
                            "fused across the views", measures)
     return ModelChoice("skipped", evidence, measures)
+
+
+def choose_occluders(quantities: Mapping[str, PixelQuantities], layers: Mapping[str, IntrinsicLayers],
+                     config: OccluderConfig) -> ModelChoice:
+    """Carve the occluders the proxy lost when it cannot cast most of the labelled shadow.
+
+    ``"carve"`` when ``config.when == "always"``, or when the share of Step 3's shadow pixels the
+    proxy leaves in the sun (:func:`~mvintrinsic.occluders.unexplained_shadow_share`) is at least
+    ``config.min_unexplained``; ``"skip"`` otherwise (and without shadow pixels).
+    """
+    share = unexplained_shadow_share(quantities, layers, config=config)
+    measures = {"unexplained_share": share, "min_unexplained": config.min_unexplained, "when": config.when}
+    if share is None:
+        return ModelChoice("skip", "no pixel is labelled shadow", measures)
+    evidence = (f"the proxy leaves {share:.0%} of the labelled shadow pixels in the sun "
+                f"(threshold {config.min_unexplained:.0%})")
+    if config.when == "always":
+        return ModelChoice("carve", evidence + "; carving always (when='always')", measures)
+    if share >= config.min_unexplained:
+        return ModelChoice("carve", evidence + ": it lost most occluders", measures)
+    return ModelChoice("skip", evidence + ": it holds most occluders", measures)

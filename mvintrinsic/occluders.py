@@ -50,7 +50,8 @@ from .raytrace import Tracer, interpolate_points, rasterize, voxel_subsample
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import Proxy, View
 
-__all__ = ["OCCLUDER_RADIANCE", "OccluderConfig", "Occluders", "carve_occluders", "occluded_step1"]
+__all__ = ["OCCLUDER_RADIANCE", "OccluderConfig", "Occluders", "carve_occluders", "occluded_step1",
+           "unexplained_shadow_share"]
 
 #: What a hemisphere ray that hits an occluder brings (:class:`OccluderConfig`).
 OCCLUDER_RADIANCE = ("zero", "observed")
@@ -94,6 +95,16 @@ class OccluderConfig:
         sunlit outside of a crown, the ground below it sees its dark underside.
     max_voxels : int
         Largest grid (voxels); the voxel edge grows to stay within it.
+    when : {"auto", "always"}
+        ``"auto"`` (default): carve only when the proxy leaves in the sun at least
+        ``min_unexplained`` of the labelled shadow pixels (:func:`unexplained_shadow_share`; the
+        choice is recorded in ``lighting.json`` "model"); ``"always"``: whenever Step 3 ran.
+    min_unexplained : float
+        The share of ``when="auto"``, in (0, 1): 0.5, a majority of the shadow the proxy cannot
+        cast. Measured (``docs/step4.md``): 0.68-0.87 on the four scenes whose proxy lost their
+        trees (where carving brought the umbra's ``S_env`` from +36..+91% to -16..+36% and lowered
+        both LMSEs at 480x360), 0.31-0.41 on the three whose proxy kept most occluders (where it
+        overshot, -9..-33%, and moved ``L_sun`` away from the truth).
     """
 
     voxel: float = 0.5
@@ -108,6 +119,8 @@ class OccluderConfig:
     lit_visibility: float = 0.9
     radiance: str = "zero"
     max_voxels: int = 20_000_000
+    when: str = "auto"
+    min_unexplained: float = 0.5
 
     def __post_init__(self) -> None:
         for name in ("voxel", "consistency", "clearance"):
@@ -118,7 +131,9 @@ class OccluderConfig:
             value = getattr(self, name)
             if not is_real(value) or not 0 <= value < np.inf:
                 raise ValueError(f"{name} must be a finite number >= 0 (metres), got {value!r}")
-        for name in ("shadow_share", "camera_share", "shadow_visibility", "lit_visibility"):
+        if self.when not in ("auto", "always"):
+            raise ValueError(f"when must be 'auto' or 'always', got {self.when!r}")
+        for name in ("shadow_share", "camera_share", "shadow_visibility", "lit_visibility", "min_unexplained"):
             value = getattr(self, name)
             if not is_real(value) or not 0 < value < 1:
                 raise ValueError(f"{name} must be in (0, 1), got {value!r}")
@@ -222,6 +237,48 @@ def _check(views: Sequence[View], quantities: Mapping[str, PixelQuantities],
             raise ValueError(f"quantities and layers of view {view.stem!r} must have its shape {view.shape}")
 
 
+def _sun_ray_pixels(q: PixelQuantities, layer: IntrinsicLayers, config: OccluderConfig
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pixels on the proxy; labelled shadow; shadow the proxy does not cast; lit. (H, W) bool each."""
+    on_proxy = q.valid & ~q.filled & np.isfinite(q.depth)
+    labelled = on_proxy & (layer.shadow_labels == SHADOW_LABELS["shadow"]) & (layer.visibility < config.shadow_visibility)
+    # shadowed, though the proxy leaves the point in the sun (and it faces the sun)
+    unexplained = labelled & (q.visibility > 0.5) & (q.cosine > 0.05)
+    lit = on_proxy & (layer.shadow_labels == SHADOW_LABELS["lit"]) & (layer.visibility > config.lit_visibility)
+    return on_proxy, labelled, unexplained, lit
+
+
+def unexplained_shadow_share(quantities: Mapping[str, PixelQuantities], layers: Mapping[str, IntrinsicLayers], *,
+                             config: OccluderConfig | None = None) -> float | None:
+    """Share of the labelled shadow pixels that the proxy leaves in the sun, over all views.
+
+    A pixel counts when it is labelled shadow by Step 3 (``v_sun`` below
+    ``config.shadow_visibility``) on the proxy; it is unexplained when its point faces the sun and
+    the proxy's own shadow ray escapes (``~v = 1``): an occluder the proxy lost, or a wrong label.
+
+    Parameters
+    ----------
+    quantities : mapping of str to PixelQuantities
+    layers : mapping of str to IntrinsicLayers
+        Step 3's layers of the same views.
+    config : OccluderConfig, optional
+
+    Returns
+    -------
+    float or None
+        None when no pixel is labelled shadow.
+    """
+    config = config or OccluderConfig()
+    labelled = unexplained = 0
+    for stem, q in quantities.items():
+        if stem not in layers or layers[stem].shape != q.shape:
+            raise ValueError(f"layers must hold view {stem!r} with its shape {q.shape}")
+        _, shadow, lost, _ = _sun_ray_pixels(q, layers[stem], config)
+        labelled += int(shadow.sum())
+        unexplained += int(lost.sum())
+    return unexplained / labelled if labelled else None
+
+
 def carve_occluders(
     views: Sequence[View],
     quantities: Mapping[str, PixelQuantities],
@@ -270,13 +327,8 @@ def carve_occluders(
         q, layer, camera = quantities[view.stem], layers[view.stem], view.camera
         rays = camera.pixel_rays().reshape(*camera.shape, 3)
         depth = q.depth.astype(np.float64)
-        on_proxy = q.valid & ~q.filled & np.isfinite(depth)
+        on_proxy, _, shadow, lit = _sun_ray_pixels(q, layer, config)
         points = camera.center + np.where(on_proxy, depth, 0.0)[..., None] * rays + 0.05 * q.normals
-        labels, v = layer.shadow_labels, layer.visibility
-        # shadowed, though the proxy leaves the point in the sun (and it faces the sun)
-        shadow = on_proxy & (labels == SHADOW_LABELS["shadow"]) & (v < config.shadow_visibility) \
-            & (q.visibility > 0.5) & (q.cosine > 0.05)
-        lit = on_proxy & (labels == SHADOW_LABELS["lit"]) & (v > config.lit_visibility)
         for mask, acc, name in ((shadow, shadow_rays, "shadow"), (lit, lit_rays, "lit")):
             acc += grid.count(points[mask], np.broadcast_to(sun, (int(mask.sum()), 3)), config.ray_start, np.inf)
             counts[name] += int(mask.sum())

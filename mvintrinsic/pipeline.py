@@ -53,6 +53,7 @@ from .matting import MattingConfig, intrinsic_layers_result
 from .model_choice import (
     choose_cast_shadows,
     choose_direct_sun,
+    choose_occluders,
     choose_step4,
     sky_choice,
 )
@@ -102,12 +103,14 @@ class Config:
         Step 4 (Sec. 7): the multi-view reflectance fusion (default) or the paper's ``S_env``
         offsets (:mod:`mvintrinsic.env_refine`).
     occluders : OccluderConfig or None
-        Beyond the paper (:mod:`mvintrinsic.occluders`): after Step 3, carve the occluders the
-        proxy lost (tree crowns, poles) from the shadows and the photos, integrate ``S_sky`` and
-        ``S_ind`` again with them, and run Steps 2 and 3 again. It brings the umbra's ``S_env``
-        and ``L_sun`` near the truth on the synthetic scenes, at a cost in reflectance and
-        shading LMSE on some (``docs/step4.md``), and doubles Steps 2-3's time. None (default):
-        off.
+        Beyond the paper (:mod:`mvintrinsic.occluders`): after Step 3, when the proxy cannot cast
+        most of the labelled shadow (``OccluderConfig.when``, recorded in ``lighting.json``
+        "model"), carve the occluders it lost (tree crowns, poles) from the shadows and the
+        photos, integrate ``S_sky`` and ``S_ind`` again with them, and run Steps 2 and 3 again.
+        On the four synthetic scenes whose proxy lost their trees it brought the umbra's ``S_env``
+        from +36..+91% of the truth to -16..+36% and ``L_sun`` toward the truth, and lowered both
+        LMSEs at 480x360; it about triples the time of Steps 1-3 there (``docs/step4.md``). None:
+        off (the ``"paper"`` and ``"fast"`` presets).
     scale : float
         Working resolution, in (0, 1]: the views are area-averaged to ``scale`` times their size
         (but not below :data:`MIN_WORKING_SIDE` pixels on their longer side), decomposed, and the
@@ -140,7 +143,7 @@ class Config:
     multiview: MultiViewShadowConfig = field(default_factory=MultiViewShadowConfig)
     matting: MattingConfig | None = field(default_factory=MattingConfig)
     env_refine: EnvRefineConfig = field(default_factory=EnvRefineConfig)
-    occluders: OccluderConfig | None = None
+    occluders: OccluderConfig | None = field(default_factory=OccluderConfig)
     scale: float = 1.0
     max_side: int | None = None
     steps: int = 4
@@ -179,17 +182,18 @@ class Config:
         name : {"fast", "balanced", "paper", "best"}
             * ``"fast"``: a quick look. The views decomposed with their longer side at
               :data:`FAST_SIDE` pixels (:mod:`mvintrinsic.resolution`), 16 Step-1 rays on a
-              0.2 m grid, normals smoothed over 0.2 m, one labelling pass, no matting (``v_sun``
-              from the labels, :func:`label_layers`). Measured on 6 views of timing_1000
-              (1000x750, ``docs/presets.md``): 2.3 s per view, reflectance LMSE 0.059 (with the
-              matting 3.5 s and 0.049).
+              0.2 m grid, normals smoothed over 0.2 m, one labelling pass, no occluder carving, no
+              matting (``v_sun`` from the labels, :func:`label_layers`). Measured on 6 views of
+              timing_1000 (1000x750, ``docs/presets.md``, before the occluder carving existed):
+              2.3 s per view, reflectance LMSE 0.059 (with the matting 3.5 s and 0.049).
             * ``"balanced"``: the defaults with the longer side at :data:`BALANCED_SIDE` pixels:
-              16 views at 1000x750 in 158 s end to end and 3.2 GB (``docs/presets.md``); photos
-              of at most that size are decomposed as by ``Config()``.
+              16 views at 1000x750 in 158 s end to end and 3.2 GB (``docs/presets.md``, before the
+              occluder carving, which adds a second pass of Steps 2-3 where it runs); photos of at
+              most that size are decomposed as by ``Config()``.
             * ``"paper"``: the paper's method as published (Duchêne et al. 2015): the per-view
               colour segmentation and MRF of Sec. 6.1, matting (Sec. 6.2), Step 4's ``S_env``
               offsets (Sec. 7), the proxy's own normals, the Preetham sky, direct sun assumed,
-              no exposure compensation and no sky colour test.
+              no exposure compensation, no sky colour test and no occluder carving.
             * ``"best"``: the defaults with four times the Step-1 rays (256, a 16 x 16 stratified
               grid: 1.05% median Monte Carlo error against 2.6% with 64; 128 rays, not a square,
               are stratified in one dimension only and gave 2.7%, ``docs/presets.md``) and two
@@ -211,12 +215,12 @@ class Config:
             return dataclasses.replace(base, max_side=BALANCED_SIDE)
         if name == "fast":
             return dataclasses.replace(
-                base, max_side=FAST_SIDE, matting=None,
+                base, max_side=FAST_SIDE, matting=None, occluders=None,
                 step1=dataclasses.replace(base.step1, n_rays=16, subsample=0.2, normal_smoothing=0.2),
                 multiview=dataclasses.replace(base.multiview, iterations=1))
         if name == "paper":
             return dataclasses.replace(
-                base, exposure=ExposureConfig(method="none"), shadow=ShadowConfig(method="paper"),
+                base, exposure=ExposureConfig(method="none"), shadow=ShadowConfig(method="paper"), occluders=None,
                 env_refine=EnvRefineConfig(method="paper"), sun=dataclasses.replace(base.sun, direct_sun="always"),
                 step1=dataclasses.replace(base.step1, normal_smoothing=0.0, sky_colour_tolerance=None,
                                           sky=dataclasses.replace(base.step1.sky, model="preetham")))
@@ -709,7 +713,8 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         views (``downscale`` and ``upsample`` with ``config.scale < 1``, ``depth_maps`` (cast once
         for the gains and Step 1), ``exposure``,
         ``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
-        :func:`step3`, or ``layers`` with ``steps=2``; ``step4`` and its parts ``step4.<part>``;
+        :func:`step3`, or ``layers`` with ``steps=2``; ``occluders.carve``, ``occluders.shading`` and ``occluders.<stage>`` of the second
+        pass of Steps 2-3 where the occluders are carved; ``step4`` and its parts ``step4.<part>``;
         with a ``client``, ``scatter``: shipping the views' inputs to the workers, and
         ``cluster.step3``: the wall seconds of Step 3's tasks, whose stages (``segmentation``,
         ``matting``, ...) are the workers' seconds summed over the views) and ``config.to_dict()``.
@@ -770,12 +775,14 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     if config.occluders is not None and config.steps > 2 and not (no_sun or no_cast):
         # Beyond the paper (mvintrinsic.occluders): the occluders the proxy lost, carved from Step 3's
         # shadows and the photos, added to Step 1's hemisphere rays; then Steps 2 and 3 again.
-        logger.info("occluders: carving what the proxy lost, then Steps 2 and 3 again")
-        start = time.perf_counter()
-        occluders = carve_occluders(scene.views, quantities, layers, s1.radiance, tracer, scene.sun.direction,
-                                    config=config.occluders)
-        timings["occluders.carve"] = time.perf_counter() - start
-        if len(occluders):
+        choice = choose_occluders(quantities, layers, config.occluders)
+        if choice.choice == "carve":
+            logger.info("occluders: carving what the proxy lost (%s), then Steps 2 and 3 again", choice.evidence)
+            start = time.perf_counter()
+            occluders = carve_occluders(scene.views, quantities, layers, s1.radiance, tracer, scene.sun.direction,
+                                        config=config.occluders)
+            timings["occluders.carve"] = time.perf_counter() - start
+        if occluders is not None and len(occluders):
             start = time.perf_counter()
             s1 = occluded_step1(s1, tracer, occluders, rng=config.seed, progress=progress)
             quantities = carry_to_pixels(scene, s1, tracer, progress=progress)
@@ -787,7 +794,11 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
             again: dict[str, float] = {}
             sun_radiance, model, no_sun, no_cast, layers, shared, step3_futures, solves = _steps_2_3(
                 scene, quantities, config=config, progress=progress, tasks=tasks, inputs=inputs, timings=again)
+            for key in ("scatter", "cluster.step3"):  # shipping and cluster wall time: both passes summed
+                if key in again:
+                    timings[key] = timings.get(key, 0.0) + again.pop(key)
             timings.update({f"occluders.{k}": v for k, v in again.items()})
+        model["occluders"] = choice
 
     if config.steps == 4:
         # Without cast-shadow boundaries the S_env offsets are skipped and the multi-view fusion,

@@ -84,7 +84,10 @@ def test_decompose_on_a_cluster_is_identical_to_the_serial_run(scene, serial, cl
            if str(task["key"]).startswith("mvintrinsic-")]
     stages = {stage for stage, _ in ran}
     assert {"sun", "step3"} <= stages and ("step4" in stages) == (name == "paper")
-    assert sum(stage == "step3" for stage, _ in ran) == len(scene.views)
+    # one pass of Step 3, two where the occluders the proxy lost were carved (mvintrinsic.occluders)
+    passes = 2 if "occluders.carve" in result.timings else 1
+    assert sum(stage == "step3" for stage, _ in ran) == passes * len(scene.views)
+    assert sum(stage == "sun" for stage, _ in ran) == passes * len(scene.views)
     assert len({worker for _, worker in ran}) == 2
 
 

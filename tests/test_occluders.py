@@ -7,13 +7,16 @@ proxy lost the tree: the umbra's ``S_env`` and ``L_sun`` move toward the truth.
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import look_at
 
 from mvintrinsic import Proxy
 from mvintrinsic.camera import Camera
-from mvintrinsic.occluders import OccluderConfig, Occluders, carve_occluders
+from mvintrinsic.model_choice import choose_occluders
+from mvintrinsic.occluders import OccluderConfig, Occluders, carve_occluders, unexplained_shadow_share
 from mvintrinsic.pixels import PixelQuantities
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.results import SHADOW_LABELS, IntrinsicLayers
@@ -132,6 +135,19 @@ def test_no_shadow_no_occluder(world):
     assert len(carve_occluders(views, quantities, lit, radiance, proxy_tracer, SUN)) == 0
 
 
+def test_carving_is_chosen_where_the_proxy_cannot_cast_the_shadow(world):
+    _, _, _, _, quantities, layers = world
+    assert unexplained_shadow_share(quantities, layers) == 1.0  # the proxy is the ground alone
+    assert choose_occluders(quantities, layers, OccluderConfig()).choice == "carve"
+    # a proxy that casts the labelled shadows: ~v = 0 there
+    cast = {s: replace(q, visibility=np.where(layers[s].shadow_labels == SHADOW_LABELS["shadow"], 0.0,
+                                              q.visibility).astype(np.float32)) for s, q in quantities.items()}
+    assert unexplained_shadow_share(cast, layers) == 0.0
+    choice = choose_occluders(cast, layers, OccluderConfig())
+    assert choice.choice == "skip" and choice.measures["unexplained_share"] == 0.0
+    assert choose_occluders(cast, layers, OccluderConfig(when="always")).choice == "carve"
+
+
 def test_mesh_is_closed_cubes():
     occluders = Occluders(centres=np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]), size=0.5, radiance=np.zeros((2, 3)))
     vertices, triangles = occluders.mesh()
@@ -151,7 +167,8 @@ def test_mismatched_inputs_name_the_argument(world):
 
 @pytest.mark.parametrize(("field", "value"), [("voxel", 0.0), ("voxel", np.inf), ("shadow_share", 1.0),
                                               ("camera_share", 0.0), ("min_shadow_rays", 0), ("radiance", "mean"),
-                                              ("margin", -1.0), ("max_voxels", 2.5)])
+                                              ("margin", -1.0), ("max_voxels", 2.5),
+                                              ("when", "never"), ("min_unexplained", 1.5)])
 def test_config_errors_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         OccluderConfig(**{field: value})

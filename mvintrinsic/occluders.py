@@ -211,10 +211,20 @@ class _Grid:
         offsets = (np.arange(int(self._span / step) + 1) + 0.5) * step
         start = np.broadcast_to(np.asarray(t_start, dtype=np.float64), (n,))
         end = np.broadcast_to(np.asarray(t_end, dtype=np.float64), (n,))
+        # Where each ray leaves the grid (a convex box it starts in or never enters): samples past it
+        # fall outside and count nothing, so each batch of rays, sorted by length, stops there.
+        high = self.low + self.dims * self.voxel
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inverse = 1.0 / directions
+            leave = np.nanmin(np.maximum((self.low - origins) * inverse, (high - origins) * inverse), axis=1)
+        length = np.clip(np.minimum(end, leave) - start, 0.0, offsets[-1] + step)
+        order = np.argsort(length, kind="stable")
         for a in range(0, n, chunk):
-            t = start[a:a + chunk, None] + offsets[None, :]
-            inside = t < end[a:a + chunk, None]
-            points = origins[a:a + chunk, None, :] + t[..., None] * directions[a:a + chunk, None, :]
+            rays = order[a:a + chunk]
+            k = min(len(offsets), int(np.ceil(length[rays].max() / step)) + 1)
+            t = start[rays, None] + offsets[None, :k]
+            inside = t < end[rays, None]
+            points = origins[rays, None, :] + t[..., None] * directions[rays, None, :]
             ijk = np.floor((points - self.low) / self.voxel).astype(np.int64)
             inside &= ((ijk >= 0) & (ijk < self.dims)).all(axis=-1)
             flat = np.ravel_multi_index(tuple(np.clip(ijk, 0, self.dims - 1).transpose(2, 0, 1)), self.dims)

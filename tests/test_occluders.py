@@ -172,3 +172,30 @@ def test_mismatched_inputs_name_the_argument(world):
 def test_config_errors_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         OccluderConfig(**{field: value})
+
+
+def test_grid_counts_each_ray_once_per_voxel_it_crosses():
+    """The batched count against a plain reference: every sample of every ray, whole length."""
+    from mvintrinsic.occluders import _Grid
+
+    grid = _Grid(np.array([-1.0, -2.0, 0.0]), np.array([3.0, 2.0, 1.5]), 0.25, 10**6)
+    gen = np.random.default_rng(0)
+    origins = gen.uniform([-1.5, -2.5, -0.5], [3.5, 2.5, 2.0], (500, 3))  # some outside the grid
+    directions = gen.normal(size=(500, 3))
+    directions[:50, 2] = 0.0  # parallel to a face
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    end = gen.uniform(0.5, 8.0, 500)
+    end[:100] = np.inf
+    got = grid.count(origins, directions, 0.1, end, chunk=64)
+    expected = np.zeros(grid.size)
+    step = 0.5 * grid.voxel
+    for o, d, e in zip(origins, directions, end, strict=True):
+        t = 0.1 + (np.arange(int(grid._span / step) + 1) + 0.5) * step
+        ijk = np.floor((o + t[t < e, None] * d - grid.low) / grid.voxel).astype(int)
+        ijk = ijk[((ijk >= 0) & (ijk < grid.dims)).all(axis=1)]
+        flat = np.ravel_multi_index(ijk.T, grid.dims)
+        keep = np.ones(len(flat), bool)
+        keep[1:] = flat[1:] != flat[:-1]
+        np.add.at(expected, flat[keep], 1.0)
+    np.testing.assert_array_equal(got, expected)
+    assert expected.sum() > 1000

@@ -33,6 +33,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from bench_step4 import ROOT, scene_folder
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
@@ -44,7 +45,6 @@ from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.sun_calibration import find_sun_pairs
 
-ROOT = Path(__file__).resolve().parents[2]
 ROWS = ("ours", "true_env", "true_cosine", "true_env_cosine", "true_env_cosine_visibility", "step3_labels")
 
 
@@ -120,17 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.scene:
         parser.error("give --scene")
-    from mvintrinsic.cli import demo_scene_path
 
     report = {"benchmark": "lsun_terms", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "scenes": {}}
     for name in args.scene:
-        if name == "demo":
-            folder = demo_scene_path()
-        elif name == "dev_courtyard" and not (args.data / name).is_dir():
-            folder = ROOT / "shared" / "datasets" / "dev_courtyard"
-        else:
-            folder = args.data / name
+        folder = scene_folder(name, args.data)
         if not (folder / "scene.json").is_file():
             parser.error(f"--scene {name}: no scene.json in {folder}")
         report["scenes"][name] = bench_scene(folder)

@@ -162,6 +162,18 @@ def timing(folder: Path) -> dict:
     return {"scene": folder.name, "size": size, "views": n, "seconds_per_view": parts}
 
 
+def scene_folder(name: str, data: Path) -> Path:
+    """The folder of ``--scene NAME``: ``demo`` is the embedded demo, ``dev_courtyard`` the shared
+    dataset unless ``data`` holds one, anything else ``data / NAME``."""
+    from mvintrinsic.cli import demo_scene_path
+
+    if name == "demo":
+        return demo_scene_path()
+    if name == "dev_courtyard" and not (data / name).is_dir():
+        return ROOT / "shared" / "datasets" / "dev_courtyard"
+    return data / name
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
@@ -170,8 +182,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--timing", type=Path, default=None, help="scene folder for Step 4's seconds per view")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     args = parser.parse_args(argv)
-    from mvintrinsic.cli import demo_scene_path
-
     names = ["demo"] if args.smoke else args.scene
     if not names and args.timing is None:
         parser.error("give --scene, --smoke or --timing")
@@ -179,12 +189,7 @@ def main(argv: list[str] | None = None) -> int:
               "python": platform.python_version(), "config": Config().env_refine.__dict__,
               "occluders": OccluderConfig().__dict__, "scenes": {}}
     for name in names:
-        if name == "demo":
-            folder = demo_scene_path()
-        elif name == "dev_courtyard" and not (args.data / name).is_dir():
-            folder = ROOT / "shared" / "datasets" / "dev_courtyard"
-        else:
-            folder = args.data / name
+        folder = scene_folder(name, args.data)
         if not (folder / "scene.json").is_file():
             parser.error(f"--scene {name}: no scene.json in {folder}")
         report["scenes"][name] = bench_scene(folder)

@@ -47,6 +47,7 @@ __all__ = [
     "step1",
     "vertex_observations",
     "vertex_radiance",
+    "vertex_shading",
 ]
 
 
@@ -523,6 +524,57 @@ def ray_radiance(
     return sky, indirect
 
 
+def vertex_shading(
+    points: np.ndarray,
+    normals: np.ndarray,
+    tracer: Tracer,
+    environment: EnvironmentMap,
+    radiance: np.ndarray,
+    *,
+    config: Step1Config,
+    rng: np.random.Generator | int | None = None,
+    progress: bool = False,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``S_sky`` and ``S_ind`` at every proxy vertex as Step 1 computes them (Sec. 4, Eq. 1).
+
+    :func:`environment_shading` with ``config``'s rays, offset, attenuation and convergence test at
+    a voxel subsample of the vertices (``config.subsample``; every vertex when None), the other
+    vertices interpolated from it (:func:`~mvintrinsic.raytrace.interpolate_points`).
+
+    Parameters
+    ----------
+    points, normals : (N, 3) array_like
+        The proxy's vertices (m) and unit normals.
+    tracer : Tracer
+        What the hemisphere rays are cast against (the proxy, or the proxy and more geometry whose
+        vertices follow its own in ``radiance``).
+    environment : EnvironmentMap
+    radiance : (M, 3) array_like
+        Radiance of every vertex of ``tracer``'s mesh (NaN: unseen).
+    config : Step1Config
+    rng : numpy.random.Generator or int, optional
+    progress : bool, optional
+
+    Returns
+    -------
+    sky, indirect : (N, 3) float32
+    rays : (P,) int32
+        Rays cast per traced point.
+    """
+    traced = np.arange(len(points)) if config.subsample is None else voxel_subsample(points, config.subsample)
+    sky, indirect, rays = environment_shading(
+        points[traced], normals[traced], tracer, environment, radiance, n_rays=config.n_rays,
+        ray_offset=config.ray_offset, attenuation=config.indirect_attenuation, rng=rng,
+        batch_rays=config.batch_rays, progress=progress, tolerance=config.ray_tolerance,
+        max_rays=config.max_rays, return_counts=True,
+    )
+    if len(traced) < len(points):
+        both = interpolate_points(points[traced], normals[traced], np.concatenate([sky, indirect], axis=1),
+                                  points, normals, neighbors=config.interpolation_neighbors)
+        sky, indirect = both[:, :3].astype(np.float32), both[:, 3:].astype(np.float32)
+    return sky, indirect, rays
+
+
 def step1(
     scene: Scene,
     *,
@@ -602,17 +654,8 @@ def step1(
     timings["normals"] = time.perf_counter() - start
 
     start = time.perf_counter()
-    traced = np.arange(len(points)) if config.subsample is None else voxel_subsample(points, config.subsample)
-    sky, indirect, rays = environment_shading(
-        points[traced], normals[traced], tracer, environment, radiance, n_rays=config.n_rays,
-        ray_offset=config.ray_offset, attenuation=config.indirect_attenuation, rng=gen,
-        batch_rays=config.batch_rays, progress=progress, tolerance=config.ray_tolerance,
-        max_rays=config.max_rays, return_counts=True,
-    )
-    if len(traced) < len(points):
-        both = interpolate_points(points[traced], normals[traced], np.concatenate([sky, indirect], axis=1),
-                                  points, normals, neighbors=config.interpolation_neighbors)
-        sky, indirect = both[:, :3].astype(np.float32), both[:, 3:].astype(np.float32)
+    sky, indirect, rays = vertex_shading(points, normals, tracer, environment, radiance, config=config, rng=gen,
+                                         progress=progress)
     timings["environment_shading"] = time.perf_counter() - start
 
     start = time.perf_counter()

@@ -44,9 +44,9 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ._validation import is_real
-from .env_shading import PointShading, Step1Result, environment_shading
+from .env_shading import PointShading, Step1Result, vertex_shading
 from .pixels import PixelQuantities
-from .raytrace import Tracer, interpolate_points, rasterize, voxel_subsample
+from .raytrace import Tracer, rasterize
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import Proxy, View
 
@@ -183,6 +183,12 @@ class Occluders:
                           [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
         triangles = (np.arange(len(self.centres))[:, None, None] * 8 + faces[None]).reshape(-1, 3)
         return vertices, triangles.astype(np.int64)
+
+    def proxy(self) -> Proxy:
+        """:meth:`mesh` as a :class:`~mvintrinsic.scene.Proxy` (normals unused: hits take the
+        triangles' geometric normals)."""
+        vertices, triangles = self.mesh()
+        return Proxy(vertices=vertices, normals=np.tile([0.0, 0.0, 1.0], (len(vertices), 1)), triangles=triangles)
 
     def __repr__(self) -> str:
         return f"Occluders({len(self)} voxels of {self.size:g} m, {dict(self.counts)})"
@@ -348,13 +354,11 @@ def carve_occluders(
             distance = np.median(np.abs(np.log(image + 1e-3) - np.log(np.abs(expected) + 1e-3)), axis=-1)
         consistent = on_proxy & (distance < config.consistency)  # NaN (unseen vertices): not consistent
         blocked = (on_proxy & ~consistent) | q.filled
-        reach = np.where(q.filled, np.inf, depth - 0.3)  # up to the surface behind
-        centre = camera.center[None]
-        for mask, end, acc, name in ((q.sky_mask, np.inf, free_rays, "free"), (consistent, reach, free_rays, "free"),
-                                     (blocked, reach, blocked_rays, "blocked")):
+        # up to the surface behind: the proxy's (minus 0.3 m), none for the sky and lost surfaces
+        reach = np.where(q.filled | q.sky_mask, np.inf, depth - 0.3)
+        for mask, acc, name in ((q.sky_mask | consistent, free_rays, "free"), (blocked, blocked_rays, "blocked")):
             n = int(mask.sum())
-            acc += grid.count(np.repeat(centre, n, axis=0), rays[mask], 0.0,
-                              reach[mask] if isinstance(end, np.ndarray) else end)
+            acc += grid.count(np.repeat(camera.center[None], n, axis=0), rays[mask], 0.0, reach[mask])
             counts[name] += n
         looks.append((camera.center, rays[blocked], image[blocked], reach[blocked]))
     seen = free_rays + blocked_rays
@@ -378,8 +382,7 @@ def carve_occluders(
 def _observed_radiance(occluders: Occluders, looks: Sequence[tuple]) -> np.ndarray:
     """Mean colour of the blocked pixels whose camera rays first hit each voxel; the nearest seen
     voxel's where none does; zero when no voxel is seen. (K, 3) float32."""
-    vertices, triangles = occluders.mesh()
-    cubes = Tracer(_mesh_proxy(vertices, triangles))
+    cubes = Tracer(occluders.proxy())
     total = np.zeros((len(occluders), 3))
     n = np.zeros(len(occluders))
     for centre, rays, colours, reach in looks:
@@ -398,19 +401,13 @@ def _observed_radiance(occluders: Occluders, looks: Sequence[tuple]) -> np.ndarr
     return out.astype(np.float32)
 
 
-def _mesh_proxy(vertices: np.ndarray, triangles: np.ndarray) -> Proxy:
-    normals = np.zeros_like(vertices)
-    normals[:, 2] = 1.0  # unused: hits take the triangles' geometric normals
-    return Proxy(vertices=vertices, normals=normals, triangles=triangles)
-
-
 def occluded_step1(step1_result: Step1Result, tracer: Tracer, occluders: Occluders, *,
                    rng: np.random.Generator | int | None = None, progress: bool = False) -> Step1Result:
-    """Step 1's ``S_sky`` and ``S_ind`` integrated again against the proxy and the occluders.
+    """Step 1's ``S_sky`` and ``S_ind`` (paper Sec. 4, Eq. 1) integrated again against the proxy and the occluders.
 
-    The same hemisphere rays as :func:`~mvintrinsic.env_shading.step1` (its config's ray count,
-    offset, attenuation, voxel subsample and interpolation) at the proxy vertices, cast against the
-    proxy plus the occluders' cubes; a ray that hits a cube brings the voxel's
+    The same hemisphere rays as :func:`~mvintrinsic.env_shading.step1`
+    (:func:`~mvintrinsic.env_shading.vertex_shading` with its config) at the proxy vertices, cast
+    against the proxy plus the occluders' cubes; a ray that hits a cube brings the voxel's
     :attr:`Occluders.radiance`. ``~v``, the cosine, the environment map and the vertex radiance are
     kept.
 
@@ -433,25 +430,16 @@ def occluded_step1(step1_result: Step1Result, tracer: Tracer, occluders: Occlude
     if not len(occluders):
         return step1_result
     start = time.perf_counter()
-    config = step1_result.config
     proxy = tracer.proxy
-    cube_vertices, cube_triangles = occluders.mesh()
     if proxy.triangles is None:
         raise ValueError("tracer: occluders can only be added to a triangle-mesh proxy")
-    both = Proxy(vertices=np.vstack([proxy.vertices, cube_vertices]),
-                 normals=np.vstack([proxy.normals, np.tile([0.0, 0.0, 1.0], (len(cube_vertices), 1))]),
-                 triangles=np.vstack([proxy.triangles, cube_triangles + len(proxy.vertices)]))
-    radiance = np.vstack([step1_result.radiance, np.repeat(occluders.radiance, 8, axis=0)])
-    points, normals = np.asarray(proxy.vertices, dtype=np.float64), step1_result.normals
-    traced = np.arange(len(points)) if config.subsample is None else voxel_subsample(points, config.subsample)
-    sky, indirect = environment_shading(
-        points[traced], normals[traced], Tracer(both), step1_result.environment, radiance, n_rays=config.n_rays,
-        ray_offset=config.ray_offset, attenuation=config.indirect_attenuation, rng=rng,
-        batch_rays=config.batch_rays, progress=progress, tolerance=config.ray_tolerance, max_rays=config.max_rays)
-    if len(traced) < len(points):
-        values = interpolate_points(points[traced], normals[traced], np.concatenate([sky, indirect], axis=1),
-                                    points, normals, neighbors=config.interpolation_neighbors)
-        sky, indirect = values[:, :3].astype(np.float32), values[:, 3:].astype(np.float32)
+    cubes = occluders.proxy()
+    both = Proxy(vertices=np.vstack([proxy.vertices, cubes.vertices]), normals=np.vstack([proxy.normals, cubes.normals]),
+                 triangles=np.vstack([proxy.triangles, cubes.triangles + len(proxy.vertices)]))
+    radiance = np.vstack([step1_result.radiance, np.repeat(occluders.radiance, 8, axis=0)])  # 8 corners a voxel
+    sky, indirect, _ = vertex_shading(np.asarray(proxy.vertices, dtype=np.float64), step1_result.normals,
+                                      Tracer(both), step1_result.environment, radiance, config=step1_result.config,
+                                      rng=rng, progress=progress)
     for array in (sky, indirect):
         array.flags.writeable = False
     shading = PointShading(sky=sky, indirect=indirect, visibility=step1_result.shading.visibility,

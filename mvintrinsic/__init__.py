@@ -22,7 +22,14 @@ from .env_refine import Step4Result  # noqa: E402
 from .env_shading import Step1Result, step1  # noqa: E402
 from .io import demo_scene_path, load_decomposition, load_scene, save_decomposition  # noqa: E402
 from .multiview_shadows import PixelShadowLabels  # noqa: E402
-from .occluders import OccluderConfig, Occluders, carve_occluders, occluded_step1  # noqa: E402
+from .occluders import (  # noqa: E402
+    OccluderConfig,
+    Occluders,
+    carve_occluders,
+    occluded_step1,
+    seen_occluders,
+    smooth_occluder_reflectance,
+)
 from .pipeline import (  # noqa: E402
     Config,
     Step3View,
@@ -78,6 +85,8 @@ __all__ = [
     "load_scene",
     "occluded_step1",
     "save_decomposition",
+    "seen_occluders",
+    "smooth_occluder_reflectance",
     "step1",
     "step2_layers",
     "step3",

@@ -58,7 +58,7 @@ from .model_choice import (
     sky_choice,
 )
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
-from .occluders import OccluderConfig, carve_occluders, occluded_step1
+from .occluders import OccluderConfig, carve_occluders, occluded_step1, seen_occluders, smooth_occluder_reflectance
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
 from .raytrace import Tracer, depth_map
 from .resolution import downscale_scene, upsample_layers
@@ -106,7 +106,9 @@ class Config:
         Beyond the paper (:mod:`mvintrinsic.occluders`): after Step 3, when the proxy cannot cast
         most of the labelled shadow (``OccluderConfig.when``, recorded in ``lighting.json``
         "model"), carve the occluders it lost (tree crowns, poles) from the shadows and the
-        photos, integrate ``S_sky`` and ``S_ind`` again with them, and run Steps 2 and 3 again.
+        photos, integrate ``S_sky`` and ``S_ind`` again with them, and run Steps 2 and 3 again;
+        after Step 4, the shadowed pixels that see an occluder take a smooth reflectance
+        (``OccluderConfig.reflectance_smoothing``).
         On the four synthetic scenes whose proxy lost their trees it brought the umbra's ``S_env``
         from +36..+91% of the truth to -16..+36% and ``L_sun`` toward the truth, and lowered both
         LMSEs at 480x360; it about triples the time of Steps 1-3 there (``docs/step4.md``). None:
@@ -715,6 +717,7 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
         ``step1.<sub-stage>``, ``pixels``, ``sun_pairs``, then the Step-3 stages of
         :func:`step3`, or ``layers`` with ``steps=2``; ``occluders.carve``, ``occluders.shading`` and ``occluders.<stage>`` of the second
         pass of Steps 2-3 where the occluders are carved; ``step4`` and its parts ``step4.<part>``;
+        ``occluders.reflectance`` (after Step 4: the reflectance of the shadowed pixels that see an occluder);
         with a ``client``, ``scatter``: shipping the views' inputs to the workers, and
         ``cluster.step3``: the wall seconds of Step 3's tasks, whose stages (``segmentation``,
         ``matting``, ...) are the workers' seconds summed over the views) and ``config.to_dict()``.
@@ -825,6 +828,20 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
             timings["step4"] = time.perf_counter() - start
             timings.update({f"step4.{k}": v for k, v in step4_timings.items()})
 
+    smoothed = None
+    if occluders is not None and len(occluders) and config.occluders.reflectance_smoothing is not None:
+        # Beyond the paper: the shadowed pixels that see a carved occluder take a smooth reflectance
+        # (mvintrinsic.occluders.smooth_occluder_reflectance; docs/step4.md).
+        start = time.perf_counter()
+        seen = seen_occluders(scene.views, quantities, occluders)
+        before = layers
+        layers = {stem: smooth_occluder_reflectance(layer, seen[stem],
+                                                    sigma=config.occluders.reflectance_smoothing * max(layer.shape))
+                  for stem, layer in layers.items()}
+        smoothed = float(np.mean([(layers[s].reflectance != before[s].reflectance).any(axis=-1).mean()
+                                  for s in layers]))
+        timings["occluders.reflectance"] = time.perf_counter() - start
+
     if scale < 1.0:  # the layers at the photos' size
         start = time.perf_counter()
         layers = {view.stem: upsample_layers(view, layers[view.stem]) for view in full.views}
@@ -843,4 +860,6 @@ def decompose(scene: Scene, *, config: Config | None = None, tracer: Tracer | No
     diagnostics: dict[str, Any] = {"matting": solves} if any(solves.values()) else {}  # a missed rtol was logged
     if occluders is not None:
         diagnostics["occluders"] = {"voxels": len(occluders), "voxel": occluders.size, "rays": dict(occluders.counts)}
+        if smoothed is not None:
+            diagnostics["occluders"]["smoothed_share"] = smoothed  # of the pixels, mean over views
     return Decomposition(layers=layers, lighting=lighting, timings=timings, config=config, diagnostics=diagnostics)

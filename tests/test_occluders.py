@@ -16,7 +16,14 @@ from conftest import look_at
 from mvintrinsic import Proxy
 from mvintrinsic.camera import Camera
 from mvintrinsic.model_choice import choose_occluders
-from mvintrinsic.occluders import OccluderConfig, Occluders, carve_occluders, unexplained_shadow_share
+from mvintrinsic.occluders import (
+    OccluderConfig,
+    Occluders,
+    carve_occluders,
+    seen_occluders,
+    smooth_occluder_reflectance,
+    unexplained_shadow_share,
+)
 from mvintrinsic.pixels import PixelQuantities
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.results import SHADOW_LABELS, IntrinsicLayers
@@ -34,6 +41,8 @@ SHADOW_IOU = 0.75  # the same with 0.25 m voxels (measured 0.80:
 SHADOW_IOU_FINE = 0.85  # the same with 0.1 m voxels (measured 0.91)
 RECALL = 0.95  # share of the slab's shadow the voxels' shadow covers (measured 1.0, 1.0 and 0.997)
 INSIDE = 0.8  # share of the voxels within one voxel of the slab (measured 1.0, 0.95 and 0.87)
+SEEN_IOU = 0.7  # the pixels that see a voxel against those that see the slab, 0.5 m voxels (measured 0.73
+# in every view: whole voxels over the slab widen its outline)
 
 
 def _mesh(low, high, subdivisions=0):
@@ -159,6 +168,73 @@ def test_mesh_is_closed_cubes():
     assert (counts == 2).all()  # every edge shared by two triangles: closed
 
 
+def test_the_pixels_that_see_the_slab_are_found(world):
+    proxy_tracer, exact, radiance, views, quantities, layers = world
+    occluders = carve_occluders(views, quantities, layers, radiance, proxy_tracer, SUN)
+    seen = seen_occluders(views, quantities, occluders)
+    for view in views:
+        truth = exact.intersect(view.camera.center, view.camera.pixel_rays())
+        on_slab = (truth.hit & (truth.points[:, 2] > 1.0)).reshape(H, W)
+        ours = seen[view.stem]
+        assert ours.shape == (H, W) and ours.dtype == bool
+        assert (ours & on_slab).sum() / (ours | on_slab).sum() >= SEEN_IOU
+    empty = Occluders(centres=np.zeros((0, 3)), size=0.5, radiance=np.zeros((0, 3)))
+    assert not any(m.any() for m in seen_occluders(views, quantities, empty).values())
+    with pytest.raises(ValueError, match="quantities"):
+        seen_occluders(views, {}, occluders)
+
+
+def test_shadowed_pixels_that_see_an_occluder_get_a_smooth_reflectance():
+    """A leafy crown: one green material under shading that varies from leaf to leaf."""
+    rng = np.random.default_rng(0)
+    h, w = 40, 60
+    seen = np.zeros((h, w), bool)
+    seen[5:35, 10:50] = True
+    labels = np.full((h, w), SHADOW_LABELS["lit"], np.uint8)
+    labels[:, :30] = SHADOW_LABELS["shadow"]
+    green = np.array([0.1, 0.3, 0.05], np.float32)
+    leaf_shading = rng.uniform(0.2, 1.0, (h, w, 1)).astype(np.float32)
+    # the model's layers: the leaf-to-leaf shading wrongly in the reflectance, flat shading
+    reflectance = np.broadcast_to(green, (h, w, 3)) * leaf_shading
+    flat = np.full((h, w, 3), 0.5, np.float32)
+    layers = IntrinsicLayers("v", reflectance=reflectance.astype(np.float32), sun_shading=flat,
+                             sky_shading=0.3 * flat, indirect_shading=0.1 * flat,
+                             visibility=(labels == SHADOW_LABELS["lit"]).astype(np.float32), shadow_labels=labels)
+    out = smooth_occluder_reflectance(layers, seen, sigma=5.0)
+    region = seen & (labels == SHADOW_LABELS["shadow"])
+    # the image is kept (Eq. 1), the labels and v_sun too
+    np.testing.assert_allclose(out.reconstruct(), layers.reconstruct(), rtol=1e-5)
+    np.testing.assert_array_equal(out.shadow_labels, labels)
+    np.testing.assert_array_equal(out.visibility, layers.visibility)
+    # outside the region nothing moves
+    np.testing.assert_array_equal(out.reflectance[~region], layers.reflectance[~region])
+    np.testing.assert_array_equal(out.sky_shading[~region], layers.sky_shading[~region])
+    # inside, the reflectance is the material's colour up to a smooth factor: its chromaticity is
+    # green's, and its pixel-to-pixel variation falls by more than 5x
+    chroma = out.reflectance[region] / out.reflectance[region].sum(axis=1, keepdims=True)
+    np.testing.assert_allclose(chroma, np.broadcast_to(green / green.sum(), chroma.shape), rtol=1e-4)
+    before = np.std(np.log(layers.reflectance[region][:, 1]))
+    after = np.std(np.log(out.reflectance[region][:, 1]))
+    assert after < before / 20  # measured 34x lower
+    # no pixel in the region: the layers themselves
+    assert smooth_occluder_reflectance(layers, np.zeros((h, w), bool), sigma=5.0) is layers
+
+
+@pytest.mark.parametrize(("kwargs", "match"), [({"seen": np.ones((3, 3), bool)}, "seen"),
+                                               ({"seen": np.ones((40, 60))}, "seen"),
+                                               ({"sigma": 0.0}, "sigma"), ({"sigma": np.nan}, "sigma")])
+def test_smoothing_errors_name_the_argument(kwargs, match):
+    zeros = np.zeros((40, 60, 3), np.float32)
+    layers = IntrinsicLayers("v", reflectance=zeros, sun_shading=zeros, sky_shading=zeros, indirect_shading=zeros,
+                             visibility=np.zeros((40, 60), np.float32),
+                             shadow_labels=np.zeros((40, 60), np.uint8))
+    arguments = {"seen": np.zeros((40, 60), bool), "sigma": 2.0, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        smooth_occluder_reflectance(layers, arguments.pop("seen"), **arguments)
+    with pytest.raises(TypeError, match="layers"):
+        smooth_occluder_reflectance(zeros, np.zeros((40, 60), bool), sigma=2.0)
+
+
 def test_mismatched_inputs_name_the_argument(world):
     proxy_tracer, _, radiance, views, quantities, layers = world
     with pytest.raises(ValueError, match="quantities and layers"):
@@ -168,7 +244,8 @@ def test_mismatched_inputs_name_the_argument(world):
 @pytest.mark.parametrize(("field", "value"), [("voxel", 0.0), ("voxel", np.inf), ("shadow_share", 1.0),
                                               ("camera_share", 0.0), ("min_shadow_rays", 0), ("radiance", "mean"),
                                               ("margin", -1.0), ("max_voxels", 2.5),
-                                              ("when", "never"), ("min_unexplained", 1.5)])
+                                              ("when", "never"), ("min_unexplained", 1.5),
+                                              ("reflectance_smoothing", 0.0), ("reflectance_smoothing", 1.0)])
 def test_config_errors_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         OccluderConfig(**{field: value})

@@ -494,7 +494,6 @@ def test_result_config_round_trips_as_a_config_or_stays_a_mapping(tmp_path, demo
 # the truth 1.40/1.40/1.61 -> 1.12/1.14/1.29, reflectance LMSE 0.0392 -> 0.0393.
 OCCLUDED_UMBRA_MAX = 0.45  # largest |signed median relative error| of the umbra's S_env over R, G, B
 OCCLUDED_LSUN_MAX = 1.35  # largest L_sun / truth over R, G, B
-OCCLUDED_LMSE_RISE = 1.03  # the reflectance LMSE may not rise by more than 3%
 
 
 def test_occluders_bring_the_umbra_and_lsun_toward_the_truth(demo_scene, demo_result, plain_result, tmp_path):
@@ -515,10 +514,14 @@ def test_occluders_bring_the_umbra_and_lsun_toward_the_truth(demo_scene, demo_re
         env = {s: l.sky_shading.astype(np.float64) + l.indirect_shading for s, l in result.layers.items()}
         error = np.abs(env_shading_error(folder, env, region="umbra", umbra=umbra)["median_signed_rel_error"])
         save_decomposition(result, tmp_path / name, scene=demo_scene)
-        lmse = evaluate(folder, tmp_path / name)["mean"]["lmse_reflectance"]
+        mean = evaluate(folder, tmp_path / name)["mean"]
+        lmse = np.array([mean["lmse_reflectance"], mean["lmse_shading"]])
         scores[name] = (error, np.asarray(result.lighting.sun_radiance) / true_sun, lmse)
     (error0, lsun0, lmse0), (error1, lsun1, lmse1) = scores["default"], scores["occluders"]
     assert (error1 < error0).all() and error1.max() < OCCLUDED_UMBRA_MAX
     assert (np.abs(lsun1 - 1) < np.abs(lsun0 - 1)).all() and lsun1.max() < OCCLUDED_LSUN_MAX
-    assert lmse1 < OCCLUDED_LMSE_RISE * lmse0
+    # both LMSEs lower (measured 0.0392 -> 0.0370 and 0.1535 -> 0.1508: the carving alone raised the
+    # shading's to 0.1575, the smooth reflectance where shadowed pixels see an occluder lowers it)
+    assert (lmse1 < lmse0).all()
+    assert 0 < occluded.diagnostics["occluders"]["smoothed_share"] < 0.1
     assert load_decomposition(tmp_path / "occluders").config.occluders == OccluderConfig()

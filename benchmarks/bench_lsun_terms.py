@@ -1,6 +1,6 @@
 """Which term of Eq. 5 makes Step 2's ``L_sun`` wrong, with the scene's own MVS-like proxy (issue 16).
 
-    python benchmarks/bench_lsun_terms.py [--data DIR] --scene NAME [--scene NAME ...] [--out FILE]
+    python benchmarks/bench_lsun_terms.py [--data DIR] --scene NAME [--scene NAME ...] [--occluders] [--out FILE]
 
 For each scene (``DIR/NAME``; ``demo`` is the embedded demo, ``dev_courtyard`` the shared dataset),
 Step 2's light/shadow pairs are found as ``decompose`` finds them
@@ -17,6 +17,13 @@ one at a time:
   (``gt/sun_shading / L_sun`` there: the partial sun a "shadowed" pixel receives);
 * ``step3_labels``: ours, on the pairs whose lit pixel Step 3 (default labelling, no occluder
   carving) gives ``v_sun > 0.9`` and whose shadowed pixel ``v_sun < 0.1``.
+
+With ``--occluders``, on the scenes where the default configuration carves the occluders the proxy
+lost (:func:`mvintrinsic.model_choice.choose_occluders`), the same rows for the pipeline's second
+pass: Step 1's shading integrated again with the carved voxels
+(:func:`mvintrinsic.occluders.carve_occluders`, :func:`~mvintrinsic.occluders.occluded_step1`, from
+the first pass's Step 3), the pairs found again on it, and ``step3_labels`` with the default
+configuration's labels. Scenes where it does not carve are reported as the first pass.
 
 And the pairs' quality against the truth: the share whose lit pixel is truly lit and whose shadowed
 pixel truly shadowed (``gt/sun_visibility``), and the median of ``|R_lit / R_shadow - 1|`` (the
@@ -41,6 +48,8 @@ from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import read_ground_truth, read_ground_truth_lighting
 from mvintrinsic.image_model import sun_radiance_from_pair
 from mvintrinsic.io import load_scene, write_json
+from mvintrinsic.model_choice import choose_occluders
+from mvintrinsic.occluders import OccluderConfig, carve_occluders, occluded_step1
 from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.sun_calibration import find_sun_pairs
@@ -61,11 +70,21 @@ def _quality(lit_v, shadow_v, ratio) -> dict:
             "median_reflectance_mismatch": float(np.median(ratio)) if len(ratio) else None}
 
 
-def bench_scene(folder: Path) -> dict:
+def bench_scene(folder: Path, *, occluders: bool = False) -> dict:
     scene = load_scene(folder)
     tracer = Tracer(scene.proxy)
-    quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
+    seed = Config().seed
+    first = step1(scene, tracer=tracer, rng=seed)
+    quantities = carry_to_pixels(scene, first, tracer)
     labelled = decompose(scene, tracer=tracer, config=Config(steps=3, occluders=None))
+    carved = None
+    if occluders:  # the second pass of the default configuration, where it carves
+        carved = choose_occluders(quantities, labelled.layers, OccluderConfig()).choice == "carve"
+        if carved:
+            voxels = carve_occluders(scene.views, quantities, labelled.layers, first.radiance, tracer,
+                                     scene.sun.direction, config=OccluderConfig())
+            quantities = carry_to_pixels(scene, occluded_step1(first, tracer, voxels, rng=seed), tracer)
+            labelled = decompose(scene, tracer=tracer, config=Config(steps=3))
     truth = read_ground_truth(folder, views=list(scene.stems))
     true_sun = np.asarray(read_ground_truth_lighting(folder).sun_radiance, dtype=np.float64)
     rows: dict[str, list] = {name: [] for name in ROWS}
@@ -103,7 +122,7 @@ def bench_scene(folder: Path) -> dict:
         agreed.append(agree)
     lit_v, shadow_v = np.concatenate(lit_v), np.concatenate(shadow_v)
     mismatch, agreed = np.concatenate(mismatch), np.concatenate(agreed)
-    out = {"views": len(scene.views), "size": "x".join(map(str, scene.views[0].shape[::-1])),
+    out = {"views": len(scene.views), "size": "x".join(map(str, scene.views[0].shape[::-1])), "carved": carved,
            "lsun_over_truth": {name: _median_ratio(rows[name], true_sun) for name in ROWS},
            "pairs": _quality(lit_v, shadow_v, mismatch),
            "pairs_step3_labels": _quality(lit_v[agreed], shadow_v[agreed], mismatch[agreed])}
@@ -116,18 +135,20 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
     parser.add_argument("--scene", action="append", default=[], help="DATA/NAME, 'demo' or 'dev_courtyard'")
+    parser.add_argument("--occluders", action="store_true",
+                        help="the second pass where the default configuration carves the lost occluders")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     args = parser.parse_args(argv)
     if not args.scene:
         parser.error("give --scene")
 
     report = {"benchmark": "lsun_terms", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
-              "python": platform.python_version(), "scenes": {}}
+              "python": platform.python_version(), "occluders": args.occluders, "scenes": {}}
     for name in args.scene:
         folder = scene_folder(name, args.data)
         if not (folder / "scene.json").is_file():
             parser.error(f"--scene {name}: no scene.json in {folder}")
-        report["scenes"][name] = bench_scene(folder)
+        report["scenes"][name] = bench_scene(folder, occluders=args.occluders)
     if args.out:
         write_json(args.out, report)
         print(f"wrote {args.out}")

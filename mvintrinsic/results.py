@@ -427,6 +427,9 @@ class Decomposition:
         one report per linear system of the view's matting (``what``, ``solver``, ``unknowns``,
         ``channels``, ``converged``, ``n_iter``, ``residual``, ``seconds``;
         :class:`mvintrinsic.laplacian.SolveReport`). Empty when nothing was solved (no matting).
+        ``{"occluders": {"voxels", "voxel", "rays", "smoothed_share"}}`` where the occluders the
+        proxy lost were carved (:mod:`mvintrinsic.occluders`): their number, edge (m), the rays
+        used, and the share of the pixels whose reflectance was smoothed (mean over the views).
     """
 
     layers: Mapping[str, IntrinsicLayers]

@@ -40,7 +40,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from bench_step4 import ROOT, scene_folder
+from bench_step4 import ROOT, scene_folders
 
 import mvintrinsic
 from mvintrinsic import Config, decompose
@@ -144,10 +144,7 @@ def main(argv: list[str] | None = None) -> int:
 
     report = {"benchmark": "lsun_terms", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "occluders": args.occluders, "scenes": {}}
-    for name in args.scene:
-        folder = scene_folder(name, args.data)
-        if not (folder / "scene.json").is_file():
-            parser.error(f"--scene {name}: no scene.json in {folder}")
+    for name, folder in scene_folders(parser, args.scene, args.data).items():
         report["scenes"][name] = bench_scene(folder, occluders=args.occluders)
     if args.out:
         write_json(args.out, report)

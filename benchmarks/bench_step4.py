@@ -174,6 +174,16 @@ def scene_folder(name: str, data: Path) -> Path:
     return data / name
 
 
+def scene_folders(parser: argparse.ArgumentParser, names: list[str], data: Path) -> dict[str, Path]:
+    """:func:`scene_folder` of every ``--scene NAME``, each checked before any is run (a parser
+    error naming the one without ``scene.json``)."""
+    folders = {name: scene_folder(name, data) for name in names}
+    for name, folder in folders.items():
+        if not (folder / "scene.json").is_file():
+            parser.error(f"--scene {name}: no scene.json in {folder}")
+    return folders
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
@@ -188,10 +198,7 @@ def main(argv: list[str] | None = None) -> int:
     report = {"benchmark": "step4", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "config": Config().env_refine.__dict__,
               "occluders": OccluderConfig().__dict__, "scenes": {}}
-    for name in names:
-        folder = scene_folder(name, args.data)
-        if not (folder / "scene.json").is_file():
-            parser.error(f"--scene {name}: no scene.json in {folder}")
+    for name, folder in scene_folders(parser, names, args.data).items():
         report["scenes"][name] = bench_scene(folder)
     if args.timing is not None:
         report["timing"] = timing(args.timing)

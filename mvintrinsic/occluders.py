@@ -49,13 +49,12 @@ from dataclasses import dataclass, field, replace
 from types import MappingProxyType
 
 import numpy as np
-from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ._validation import describe, is_real
 from .env_refine import with_reflectance
 from .env_shading import PointShading, Step1Result, vertex_shading
-from .pixels import PixelQuantities
+from .pixels import PixelQuantities, masked_gaussian_mean
 from .raytrace import Tracer, rasterize
 from .results import SHADOW_LABELS, IntrinsicLayers
 from .scene import Proxy, View
@@ -504,15 +503,6 @@ def seen_occluders(views: Sequence[View], quantities: Mapping[str, PixelQuantiti
     return seen
 
 
-def _normalized_blur(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
-    """Gaussian mean of ``values (H, W, C)`` over the pixels of ``mask`` (normalised convolution)."""
-    weight = ndimage.gaussian_filter(mask.astype(np.float64), sigma, mode="constant")
-    out = np.empty(values.shape, dtype=np.float64)
-    for c in range(values.shape[-1]):
-        out[..., c] = ndimage.gaussian_filter(np.where(mask, values[..., c], 0.0), sigma, mode="constant")
-    return out / np.maximum(weight, 1e-12)[..., None]
-
-
 def smooth_occluder_reflectance(layers: IntrinsicLayers, seen: np.ndarray, *, sigma: float) -> IntrinsicLayers:
     """Smooth reflectance, and the shading the rest, where a shadowed pixel sees an occluder the proxy lost.
 
@@ -552,5 +542,5 @@ def smooth_occluder_reflectance(layers: IntrinsicLayers, seen: np.ndarray, *, si
     region = seen & (layers.shadow_labels == SHADOW_LABELS["shadow"]) & (reflectance > 0).all(axis=-1)
     if not region.any():
         return layers
-    smooth = _normalized_blur(reflectance, region, float(sigma))
+    smooth = masked_gaussian_mean(reflectance, region, float(sigma))
     return with_reflectance(layers, np.where(region[..., None], smooth, reflectance))

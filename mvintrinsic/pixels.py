@@ -36,8 +36,8 @@ from .scene import View
 #: ``R = I / S_tot`` stays finite (a pixel the proxy says receives no light at all).
 SHADING_FLOOR = 1e-3
 
-__all__ = ["SHADING_FLOOR", "PixelQuantities", "floored_shading", "layers_from_shading", "masked_box_mean", "nearest_fill",
-           "pixel_quantities"]
+__all__ = ["SHADING_FLOOR", "PixelQuantities", "floored_shading", "layers_from_shading", "masked_box_mean",
+           "masked_gaussian_mean", "nearest_fill", "pixel_quantities"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -210,6 +210,29 @@ def masked_box_mean(values: np.ndarray, mask: np.ndarray, window: int) -> np.nda
         return values
     weights = ndimage.uniform_filter(mask.astype(np.float64), size=window, mode="constant")
     total = ndimage.uniform_filter(np.where(mask[..., None], values, 0.0), size=(window, window, 1), mode="constant")
+    return total / np.maximum(weights, 1e-12)[..., None]
+
+
+def masked_gaussian_mean(values: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian-weighted mean of ``values`` over the ``mask`` pixels (normalised convolution).
+
+    :func:`masked_box_mean` with a Gaussian of standard deviation ``sigma`` pixels for the box.
+
+    Parameters
+    ----------
+    values : (H, W, C) array_like
+    mask : (H, W) bool
+        Pixels that count; far from all of them the result is 0.
+    sigma : float
+        Standard deviation in pixels, > 0.
+
+    Returns
+    -------
+    (H, W, C) float64
+    """
+    values = np.asarray(values, dtype=np.float64)
+    weights = ndimage.gaussian_filter(mask.astype(np.float64), sigma, mode="constant")
+    total = ndimage.gaussian_filter(np.where(mask[..., None], values, 0.0), (sigma, sigma, 0), mode="constant")
     return total / np.maximum(weights, 1e-12)[..., None]
 
 

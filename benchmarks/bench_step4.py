@@ -1,7 +1,8 @@
 """Step 4 (paper Sec. 7) against Step 3 and the colour Retinex baseline: issue 16's measures.
 
     python benchmarks/bench_step4.py [--data DIR] --scene NAME [--scene NAME ...]
-                                     [--out benchmarks/results/step4.json] [--timing SCENE]
+                                     [--proxy {own,exact}] [--out benchmarks/results/step4.json]
+                                     [--timing SCENE]
     python benchmarks/bench_step4.py --smoke
 
 For each scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` is the embedded demo,
@@ -30,6 +31,11 @@ variant, mean over views:
 Every other variant runs without the carving (``Config(occluders=None)``): the default
 configuration is the ``occluders`` variant where the share is at least
 ``OccluderConfig.min_unexplained`` and ``step4_multiview`` elsewhere.
+
+``--proxy exact`` runs every variant with the scene's exact mesh as the proxy instead of its
+MVS-like one (``proxy_clean.ply`` subdivided as the Step-1 benchmarks do,
+``bench_step1_accuracy.clean_proxy``; issue 16 asks for ``L_sun`` with the clean and the MVS
+proxies): what the method reaches when the proxy holds the scene.
 
 ``--timing SCENE`` decomposes SCENE (e.g. ``DIR/courtyard_1000``, 1000x750) with the default
 configuration and reports Step 4's seconds per view from ``decompose``'s timings. ``--smoke``
@@ -103,8 +109,12 @@ def _lsun_ratio(scene, quantities, layers: dict, truth: np.ndarray) -> list[floa
     return (np.asarray(radiance) / truth).tolist()
 
 
-def bench_scene(folder: Path) -> dict:
+def bench_scene(folder: Path, *, proxy: str = "own") -> dict:
     scene = load_scene(folder)
+    if proxy == "exact":  # the exact mesh in place of the MVS-like proxy
+        from bench_step1_accuracy import clean_proxy
+
+        scene = dataclasses.replace(scene, proxy=clean_proxy(folder, scene))
     n = len(scene.views)
     tracer = Tracer(scene.proxy)
     start = time.perf_counter()
@@ -115,7 +125,7 @@ def bench_scene(folder: Path) -> dict:
     truth = read_ground_truth(folder, views=list(scene.stems))
     true_sun = np.asarray(read_ground_truth_lighting(folder).sun_radiance, dtype=np.float64)
     umbra = umbra_mask(folder, views=list(scene.stems))
-    out = {"views": n, "size": "x".join(map(str, scene.views[0].shape[::-1])),
+    out = {"views": n, "size": "x".join(map(str, scene.views[0].shape[::-1])), "proxy": proxy,
            "lsun_ratio_step2": (np.asarray(base.lighting.sun_radiance) / true_sun).tolist(),
            "spread_truth": _spread(scene, quantities, {s: truth[s].reflectance for s in scene.stems})}
     variants = {"step3": (base, None)}
@@ -190,6 +200,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=[], help="DATA/NAME, 'demo' or 'dev_courtyard' (repeatable)")
     parser.add_argument("--smoke", action="store_true", help="the demo only")
     parser.add_argument("--timing", type=Path, default=None, help="scene folder for Step 4's seconds per view")
+    parser.add_argument("--proxy", choices=("own", "exact"), default="own",
+                        help="the scene's MVS-like proxy (default) or its exact mesh")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     args = parser.parse_args(argv)
     names = ["demo"] if args.smoke else args.scene
@@ -197,9 +209,14 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("give --scene, --smoke or --timing")
     report = {"benchmark": "step4", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "config": Config().env_refine.__dict__,
-              "occluders": OccluderConfig().__dict__, "scenes": {}}
-    for name, folder in scene_folders(parser, names, args.data).items():
-        report["scenes"][name] = bench_scene(folder)
+              "occluders": OccluderConfig().__dict__, "proxy": args.proxy, "scenes": {}}
+    folders = scene_folders(parser, names, args.data)
+    if args.proxy == "exact":
+        for name, folder in folders.items():
+            if not (folder / "proxy_clean.ply").is_file():
+                parser.error(f"--proxy exact: --scene {name} has no proxy_clean.ply in {folder}")
+    for name, folder in folders.items():
+        report["scenes"][name] = bench_scene(folder, proxy=args.proxy)
     if args.timing is not None:
         report["timing"] = timing(args.timing)
     if args.out:

@@ -115,6 +115,18 @@ class MattingConfig:
         Pixels within this of a shadow/lit label transition are left out of the shading
         propagation and filled by diffusion ("a small band along shadow boundaries"); 0 disables
         it. 3 gives a band about 6 px wide, which holds the penumbra at 1000x750.
+    shadow_level : float or None
+        Beyond the paper (``None``, the default, is the paper's propagation): the Gaussian
+        standard deviation, in pixels, over which the propagated ``S_sky`` and ``S_ind`` of the
+        shadow-labelled pixels are brought back to Step 1's level
+        (:func:`~mvintrinsic.matting.restore_shadow_level`).
+        The propagation fills the band and the cluster boundaries with values that follow the
+        image but raise ``S_env`` in the shadows (the band is diffused from both sides, the lit
+        side's ``S_env`` is higher); Step 1's own values have the right level but scatter from
+        pixel to pixel. With 5 on the seven test scenes (``docs/step4.md``, "The umbra's ``S_env``
+        and Step 3's propagation"): the reflectance LMSE falls on all seven (2-11%), the
+        shading LMSE moves by -4% to +1%, the umbra's blue error falls on six of them. Not the
+        default yet: the shading LMSE rises on five scenes and the umbra's red and green on two.
     epsilon : float
         Regularisation of the window colour covariance in the matting Laplacian, for images in
         [0, 1]. Levin et al. and pymatting use ``1e-7``; we use ``1e-6``, chosen when the Laplacian
@@ -175,6 +187,7 @@ class MattingConfig:
     visibility_cluster_width: int = 1
     cluster_boundary_width: int = 3
     shadow_band_radius: int = 3
+    shadow_level: float | None = None
     epsilon: float = 1e-6
     window_radius: int = 1
     constraint_weight: float | None = None
@@ -199,6 +212,10 @@ class MattingConfig:
                 continue
             if not is_real(value) or not 0 < value < np.inf:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+        if self.shadow_level is not None and (not is_real(self.shadow_level)
+                                              or not 0 < self.shadow_level < np.inf):
+            raise ValueError(f"shadow_level must be None or a positive finite number (pixels), "
+                             f"got {self.shadow_level!r}")
         if not is_real(self.white_percentile) or not 0 < self.white_percentile <= 100:
             raise ValueError(f"white_percentile must lie in (0, 100], got {self.white_percentile!r}")
         if not self.rtol < 1:

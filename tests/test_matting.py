@@ -32,6 +32,7 @@ from mvintrinsic.matting import (
     intrinsic_layers,
     intrinsic_layers_result,
     propagate,
+    restore_shadow_level,
     shadow_transitions,
     sun_visibility_matting,
 )
@@ -98,6 +99,7 @@ def binary_labels(visibility: np.ndarray) -> np.ndarray:
     ("shadow_band_radius", -2), ("window_radius", 0), ("max_iter", 0), ("epsilon", 0.0), ("epsilon", np.inf),
     ("constraint_weight", -1.0), ("prior_weight", 0.0), ("rtol", 1.0), ("ichol_threshold", np.nan),
     ("shading_floor", 1.0), ("white_percentile", 0.0), ("white_percentile", 101.0), ("solver", "ichol"),
+    ("shadow_level", 0.0), ("shadow_level", -1.0), ("shadow_level", np.inf),
 ])
 def test_config_validation_names_the_field(field, value):
     with pytest.raises(ValueError, match=field):
@@ -560,3 +562,64 @@ def test_solve_failure_is_reported_not_only_logged(caplog):
     assert failed and all(report.n_iter == 1 and report.residual > 1e-12 for report in failed)
     assert len([r for r in caplog.records if "without reaching rtol" in r.getMessage()]) == len(failed)
     assert np.isfinite(result.layers.reflectance).all()
+
+
+# --------------------------------------------------------------------------------------------
+# Step 1's level in the shadows (beyond the paper, MattingConfig.shadow_level)
+# --------------------------------------------------------------------------------------------
+
+def test_restore_shadow_level_keeps_the_propagated_variation_at_step1s_level():
+    view, quantities, labels, _ = synthetic_view()
+    shadow = (labels == 0) & quantities.valid
+    assert shadow.sum() > 50 and ((labels == 255) & quantities.valid).sum() > 50
+    # Step 1: S_env half as high in the shadow as in the light.
+    step1_sky = np.where(shadow[..., None], 0.5 * SKY, SKY) * quantities.valid[..., None]
+    quantities = dataclasses.replace(quantities, sky=step1_sky.astype(np.float32))
+    # A propagation that raised the shadow's level to 0.8 of the light's, with a texture of its own.
+    texture = 1.0 + 0.1 * np.sin(np.arange(W) / 2.0)[None, :, None]
+    propagated = np.where(shadow[..., None], 0.8 * SKY * texture, SKY) * quantities.valid[..., None]
+    indirect = np.broadcast_to(INDIRECT, (H, W, 3)) * quantities.valid[..., None]
+    sky, ind = restore_shadow_level(quantities, labels, propagated, indirect, sigma=8.0)
+    # Outside the shadow nothing changes.
+    np.testing.assert_array_equal(sky[~shadow], propagated[~shadow])
+    np.testing.assert_array_equal(ind[~shadow], indirect[~shadow])
+    # Inside it the level is Step 1's: the mean of S_env over the shadow within 1% of Step 1's.
+    support = shadow & ~quantities.filled
+    step1_env = (step1_sky + quantities.indirect)[support].mean(axis=0)
+    restored = (sky + ind)[support].mean(axis=0)
+    before = (propagated + indirect)[support].mean(axis=0)
+    assert np.all(np.abs(restored / step1_env - 1) < 0.01), restored / step1_env
+    assert np.all(before / step1_env - 1 > 0.3)
+    # The pixel-to-pixel variation is the propagation's: both terms scaled by one smooth factor.
+    factor = sky[support] / propagated[support]
+    np.testing.assert_allclose(factor, ind[support] / indirect[support], rtol=1e-12)
+    row = 20  # a shadowed row: the texture's relative variation survives
+    cols = support[row]
+    assert cols.sum() > 10
+    kept = (sky[row, cols, 0] / propagated[row, cols, 0])
+    assert np.ptp(kept) / kept.mean() < 0.04  # a fifth of the texture's 20% at most: the texture is kept
+
+
+def test_shadow_level_leaves_exact_layers_exact():
+    # On the exact image-model scene Step 1's S_env is the truth and the propagation keeps it,
+    # so restoring its level changes nothing.
+    view, quantities, labels, clusters = synthetic_view()
+    config = MattingConfig(trimap_radius=9)
+    plain = intrinsic_layers(view, quantities, labels, SUN, clusters=clusters, config=config)
+    levelled = intrinsic_layers(view, quantities, labels, SUN, clusters=clusters,
+                                config=dataclasses.replace(config, shadow_level=5.0))
+    for name in ("reflectance", "sky_shading", "indirect_shading", "sun_shading", "visibility"):
+        np.testing.assert_allclose(getattr(levelled, name), getattr(plain, name), rtol=1e-5, atol=1e-7, err_msg=name)
+    valid = quantities.valid
+    image = np.asarray(view.image)[valid]
+    assert (np.abs(levelled.reconstruct()[valid] - image) / np.abs(image)).max() < TOL["invariant"]
+
+
+def test_restore_shadow_level_without_shadow_is_the_identity():
+    view, quantities, labels, _ = synthetic_view()
+    lit = np.where(quantities.valid, 255, 128).astype(np.uint8)
+    sky = np.asarray(quantities.sky, dtype=np.float64) * 1.3
+    ind = np.asarray(quantities.indirect, dtype=np.float64)
+    out_sky, out_ind = restore_shadow_level(quantities, lit, sky, ind, sigma=2.0)
+    np.testing.assert_array_equal(out_sky, sky)
+    np.testing.assert_array_equal(out_ind, ind)

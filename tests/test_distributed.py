@@ -46,7 +46,8 @@ def client():
     pytest.importorskip("distributed", reason="dask.distributed is not installed (pip install 'dask[distributed]')")
     from distributed import Client, LocalCluster
 
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+    # ":0": any free port (None still takes 8787, and a second run on the machine then fails)
+    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=":0") as cluster, \
             Client(cluster, set_as_default=False) as client:
         yield client
 

@@ -51,7 +51,12 @@ layers of the image model (Eqs. 1, 17):
    conditions. The diffusion is not image-guided, since image guidance is what caused the
    artifacts. (The paper does not give the band's width, nor whether "color diffusion" is guided;
    both are our choices.)
-4. **Reflectance** (:func:`intrinsic_layers`): ``R = I / S_tot`` with
+4. **Step 1's level in the shadows** (beyond the paper, ``MattingConfig.shadow_level``, off by
+   default; :func:`restore_shadow_level`). The band diffusion and the cluster-boundary
+   propagation raise ``S_sky + S_ind`` in the shadows; with the option the shadow-labelled pixels'
+   propagated values are rescaled to Step 1's local level, keeping their pixel-to-pixel variation
+   (``docs/step4.md``, "The umbra's ``S_env`` and Step 3's propagation").
+5. **Reflectance** (:func:`intrinsic_layers`): ``R = I / S_tot`` with
    ``S_tot = S_sky + S_ind + v_sun S_sun`` (Eq. 17).
 
 The Laplacian, its systems and solvers, the guide image and the options are in :mod:`.laplacian`.
@@ -476,7 +481,7 @@ def restore_shadow_level(quantities: PixelQuantities, labels: np.ndarray, sky: n
 
     Why: the propagation (paper Sec. 6.2) fills the shadow band from both sides and the cluster
     boundaries from the image, and raises ``S_env`` in the shadows (on the demo's exact mesh,
-    Step 1 is within 9% in the umbra, the propagated values 30-75% above in green and blue);
+    Step 1 is within 9% in the umbra, the propagated values 32-75% above in green and blue);
     Step 1's own values have the right level but scatter from pixel to pixel (``docs/step4.md``).
 
     Parameters
@@ -502,8 +507,10 @@ def restore_shadow_level(quantities: PixelQuantities, labels: np.ndarray, sky: n
     if not support.any():
         return sky, indirect
     step1 = np.asarray(quantities.sky, dtype=np.float64) + quantities.indirect
+    # Both means over the same pixels: one filtering of the six channels.
+    means = masked_gaussian_mean(np.concatenate([step1, sky + indirect], axis=-1), support, sigma)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ratio = masked_gaussian_mean(step1, support, sigma) / masked_gaussian_mean(sky + indirect, support, sigma)
+        ratio = means[..., :3] / means[..., 3:]
     ratio = np.where(np.isfinite(ratio) & (ratio > 0), ratio, 1.0)
     factor = np.where((shadow & np.asarray(quantities.valid))[..., None], ratio, 1.0)
     return sky * factor, indirect * factor

@@ -53,7 +53,10 @@ available, so the details below are ours. :func:`refine` runs one of two methods
        alike by ``S_env^n / S_env``.
 
     The paper's penumbra ``v_sun`` correction is not part of this method (its details are not
-    published); ``"multiview"`` is our version of it.
+    published); ``"multiview"`` is our version of it. A per-view estimator of the partial sun
+    (``v_sun`` fitted against the local reflectance of the shadowed neighbours) was measured and
+    not kept: within one view it cannot tell partial sun from a too low ``S_env``, and it raised
+    the reflectance LMSE on two of four scenes (``docs/step4.md``).
 
 Why ``"multiview"`` is the default (``docs/step4.md``, ``benchmarks/bench_step4.py``): on the
 six scenes of issue 16 (MVS-like proxies, 320x240 and 480x360) the fusion lowered both the

@@ -128,9 +128,9 @@ class MattingConfig:
         shading LMSE moves by -4% to +1%, the umbra's blue error falls on six of them. Not the
         default: the shading LMSE rises on five scenes, the umbra's red and green on two, and
         the relit images lose 0.00-0.05 dB (three scenes, 12 suns). With an accurate proxy it
-        matters more: on the exact meshes of three scenes the paper's propagation leaves the
-        umbra's blue 50-57% too high, the option 11-17%, and the reflectance LMSE falls 4-19%
-        (``docs/step4.md``, "The umbra line against the proxy").
+        matters more: on the exact meshes of demo_480 and courtyard_s1 the paper's propagation
+        leaves the umbra's blue 51-57% off, the option 13-17%; the reflectance LMSE falls 4-19%
+        on three exact meshes (``docs/step4.md``, "The umbra line against the proxy").
     epsilon : float
         Regularisation of the window colour covariance in the matting Laplacian, for images in
         [0, 1]. Levin et al. and pymatting use ``1e-7``; we use ``1e-6``, chosen when the Laplacian

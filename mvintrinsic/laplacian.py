@@ -210,16 +210,13 @@ class MattingConfig:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
-        for name in ("epsilon", "constraint_weight", "prior_weight", "rtol", "ichol_threshold", "shading_floor"):
+        for name in ("epsilon", "constraint_weight", "shadow_level", "prior_weight", "rtol", "ichol_threshold",
+                     "shading_floor"):
             value = getattr(self, name)
-            if name == "constraint_weight" and value is None:
+            if name in ("constraint_weight", "shadow_level") and value is None:
                 continue
             if not is_real(value) or not 0 < value < np.inf:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-        if self.shadow_level is not None and (not is_real(self.shadow_level)
-                                              or not 0 < self.shadow_level < np.inf):
-            raise ValueError(f"shadow_level must be None or a positive finite number (pixels), "
-                             f"got {self.shadow_level!r}")
         if not is_real(self.white_percentile) or not 0 < self.white_percentile <= 100:
             raise ValueError(f"white_percentile must lie in (0, 100], got {self.white_percentile!r}")
         if not self.rtol < 1:

@@ -596,7 +596,7 @@ def test_restore_shadow_level_keeps_the_propagated_variation_at_step1s_level():
     row = 20  # a shadowed row: the texture's relative variation survives
     cols = support[row]
     assert cols.sum() > 10
-    kept = (sky[row, cols, 0] / propagated[row, cols, 0])
+    kept = sky[row, cols, 0] / propagated[row, cols, 0]
     assert np.ptp(kept) / kept.mean() < 0.04  # a fifth of the texture's 20% at most: the texture is kept
 
 

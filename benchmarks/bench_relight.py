@@ -1,6 +1,7 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
-    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers]
+    python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
+                                       | --proxy-loss | --error-split]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -68,6 +69,10 @@ this proxy's receivers can exceed, i.e. how much of row (d)'s distance to row (c
 (:func:`proxy_variant`: less foliage and thin-structure loss, a fusion of exact depth maps, the
 exact mesh and its part the views see): what the caster needs of the proxy. ``--proxy-variant``
 picks some of them and ``--update`` merges them into an existing ``--out``.
+
+``--error-split`` only splits row (d)'s squared error beyond row (c)'s by the true shadow state
+at the capture and the new sun and ours at the new sun (:func:`error_split_scene`): which shadows
+the caster misses or adds.
 
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
@@ -597,6 +602,91 @@ def _exact_receivers(scene, mesh: MeshShadow):
         module.receiver_points = original
 
 
+#: The true shadow states of :func:`error_split`'s classes: at the capture sun, then at the new sun.
+TRUE_TRANSITIONS = (("new shadow", True, False), ("stays shadow", False, False), ("stays lit", True, True),
+                    ("leaves shadow", False, True))
+
+#: Our states at the new sun, as :func:`error_split` codes them: shadow (visibility < 0.5), lit, and
+#: a pixel of a dropped cluster, whose captured darkness its reflectance keeps
+#: (``RelightConfig.light_dropped``): lit in the visibility, shadowed as it was in the image.
+OURS_STATES = ("shadow", "lit", "dropped")
+
+
+def error_split(estimate: dict, reference: dict, truth: dict, sky_mask: dict, capture_lit: dict, new_lit: dict,
+                ours: dict) -> dict:
+    """Where a relit image's squared error is, beyond a reference relighting's, by shadow state.
+
+    Per view, both images are clipped as :func:`relit_psnr` clips them and their squared error
+    against the truth (summed over the channels) is added up over the non-sky pixels of each
+    class: the true transition (:data:`TRUE_TRANSITIONS`, from ``capture_lit`` and ``new_lit``,
+    (H, W) bool per view stem) and our state (``ours``, (H, W) int per stem, an index into
+    :data:`OURS_STATES`).
+
+    Returns
+    -------
+    dict
+        Per class ``"<transition>, ours <state>"``: ``pixels`` (share of the scored pixels),
+        ``estimate`` and ``reference`` (share of that image's summed squared error) and ``excess``
+        (share of the estimate's squared error above the reference's; they sum to 1 over the
+        classes, None when the totals are equal); and ``totals``, both mean squared errors per
+        channel.
+    """
+    names = [f"{t}, ours {o}" for t, *_ in TRUE_TRANSITIONS for o in OURS_STATES]
+    sums = {name: np.zeros(3) for name in names}
+    total, count = np.zeros(2), 0
+    for s, image in truth.items():
+        image = np.asarray(image, dtype=np.float64)
+        mask = ~np.asarray(sky_mask[s], dtype=bool) & np.isfinite(image).all(axis=-1)
+        top = float(np.percentile(image[mask], CLIP_PERCENTILE))
+        target = np.clip(np.nan_to_num(image), 0.0, top)
+        errors = [((np.clip(np.nan_to_num(np.asarray(x[s], dtype=np.float64)), 0.0, top) - target) ** 2).sum(axis=-1)
+                  for x in (estimate, reference)]
+        for transition, capture, new in TRUE_TRANSITIONS:
+            for code, state in enumerate(OURS_STATES):
+                chosen = mask & (capture_lit[s] == capture) & (new_lit[s] == new) & (ours[s] == code)
+                sums[f"{transition}, ours {state}"] += (chosen.sum(), errors[0][chosen].sum(), errors[1][chosen].sum())
+        total += (errors[0][mask].sum(), errors[1][mask].sum())
+        count += int(mask.sum())
+    excess = total[0] - total[1]
+    out = {name: {"pixels": float(v[0] / count), "estimate": float(v[1] / total[0]),
+                  "reference": float(v[2] / total[1]), "excess": float((v[1] - v[2]) / excess) if excess else None}
+           for name, v in sums.items()}
+    out["totals"] = {"estimate_mse": float(total[0] / count / 3), "reference_mse": float(total[1] / count / 3)}
+    return out
+
+
+def error_split_scene(folder: Path) -> dict:
+    """Where row (d)'s error is beyond row (c)'s (:func:`error_split`), per relit tag.
+
+    Row (d): the ground-truth layers relit by the default :class:`~mvintrinsic.relight.Relighter`
+    (our caster from the true labels); row (c): the same layers with the exact mesh's shadow. The
+    true states are ``gt/sun_visibility`` and ``gt/relit/<tag>/sun_visibility``; ours is the
+    relit visibility, and ``dropped`` for the pixels of the dropped clusters (:data:`OURS_STATES`).
+    """
+    scene, tags, sky_mask = _relit_scene(folder, "--error-split")
+    stems = scene.stems
+    ground_truth = ground_truth_decomposition(folder, views=list(stems))
+    truth = read_ground_truth(folder, views=list(stems))
+    capture_lit = {s: np.asarray(truth[s].sun_visibility, dtype=np.float64) >= 0.5 for s in stems}
+    tracer = Tracer(scene.proxy)
+    config = RelightConfig()
+    ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
+    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+    mesh = MeshShadow(folder, scene)
+    out = {}
+    for tag, (direction, images, visibility) in tags.items():
+        relit = ours.visibility_at(direction)
+        exact = mesh.visibility(direction, dataclasses.replace(config, blur=0.0))
+        state = {s: np.where(ours.casters[s].dropped, 2, (relit[s] >= 0.5).astype(np.int64)) for s in stems}
+        out[tag] = error_split(ours.render(direction, visibility=relit), plain.render(direction, visibility=exact),
+                               images, sky_mask, capture_lit, {s: np.asarray(visibility[s], bool) for s in stems},
+                               state)
+        print(f"{folder.name} {tag}: " + "; ".join(f"{name} {v['pixels']:.3f} px {v['excess']:+.2f}"
+                                                   for name, v in out[tag].items()
+                                                   if name != "totals" and abs(v["excess"] or 0) >= 0.02), flush=True)
+    return out
+
+
 def receivers_scene(folder: Path) -> dict:
     """Whether any caster can bring row (d) near row (c) from the proxy's receiver points.
 
@@ -857,6 +947,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only the exact mesh as the occluder, shot from the proxy's receivers (ground-truth layers)")
     parser.add_argument("--proxy-loss", action="store_true",
                         help="only rows (c), (d), (e) on proxies simulated with less foliage and thin-structure loss")
+    parser.add_argument("--error-split", action="store_true",
+                        help="only where row (d)'s squared error is beyond row (c)'s, by true and relit shadow state")
     parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
                         help="with --proxy-loss: only this proxy (repeatable); default all")
     parser.add_argument("--update", action="store_true",
@@ -877,7 +969,8 @@ def main(argv: list[str] | None = None) -> int:
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
     studies = (("timing", "timing", time_scene), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
-               ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene))
+               ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
+               ("error_split", "error_split", error_split_scene))
     if args.proxy_variant:
         studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)

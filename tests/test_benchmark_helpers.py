@@ -132,3 +132,34 @@ def test_bench_stability_smoke_has_no_failure_and_no_nan(tmp_path):
         assert point["outcome"] == "ok", point.get("error")
         assert point["nonfinite"] == []
         assert np.isfinite(point["lmse_reflectance"])
+
+
+def test_relight_error_split_puts_each_pixel_error_in_its_shadow_class():
+    import bench_relight
+
+    # One 2x4 view; the truth is 1 everywhere, so the clip (its 99.5th percentile) is 1.
+    truth = {"v": np.ones((2, 4, 3))}
+    sky = {"v": np.array([[False, False, False, False], [False, False, False, True]])}
+    capture = {"v": np.array([[True, True, False, False], [True, True, False, True]])}
+    new = {"v": np.array([[False, True, False, True], [False, True, False, True]])}
+    ours = {"v": np.array([[1, 1, 2, 1], [0, 0, 0, 1]])}  # shadow 0, lit 1, dropped 2
+    reference = {"v": np.ones((2, 4, 3))}
+    estimate = {"v": np.ones((2, 4, 3))}
+    estimate["v"][0, 0] = 0.0  # a new shadow ours misses: error 3 (three channels)
+    estimate["v"][1, 1] = 0.5  # stays lit, ours shadow: error 0.75
+    estimate["v"][1, 3] = 0.0  # sky: not scored
+    reference["v"][1, 2] = 0.0  # the reference's own error, stays shadow: 3
+    split = bench_relight.error_split(estimate, reference, truth, sky, capture, new, ours)
+    assert split["new shadow, ours lit"]["pixels"] == pytest.approx(1 / 7)
+    assert split["stays shadow, ours dropped"]["pixels"] == pytest.approx(1 / 7)
+    assert split["new shadow, ours lit"]["estimate"] == pytest.approx(3 / 3.75)
+    assert split["stays lit, ours shadow"]["estimate"] == pytest.approx(0.75 / 3.75)
+    assert split["stays shadow, ours shadow"]["reference"] == pytest.approx(1.0)
+    # excess = 3.75 - 3 = 0.75: +3 and +0.75 in two classes, -3 in the reference's
+    assert split["new shadow, ours lit"]["excess"] == pytest.approx(4.0)
+    assert split["stays shadow, ours shadow"]["excess"] == pytest.approx(-4.0)
+    classes = [v for k, v in split.items() if k != "totals"]
+    assert len(classes) == 12
+    assert sum(v["excess"] for v in classes) == pytest.approx(1.0)
+    assert sum(v["pixels"] for v in classes) == pytest.approx(1.0)
+    assert split["totals"] == {"estimate_mse": pytest.approx(3.75 / 7 / 3), "reference_mse": pytest.approx(3 / 7 / 3)}

@@ -41,8 +41,9 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
 * ``caster_study``: rows (d) and (e) under other :class:`~mvintrinsic.relight.RelightConfig`
   options, one changed at a time from the default: the merged caster, the paper's checks
   (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
-  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, and without bringing the
-  dropped clusters into light;
+  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, without bringing the
+  dropped clusters into light, and with the pixels the proxy does not explain relit like the
+  others (``consistency=None``, the paper);
 * ``mesh_visibility_iou``: row (c)'s shadow (``< 0.5``) against ``gt/relit/<tag>/sun_visibility``
   over the non-sky pixels, without and with the blur (a check of the bound);
 * ``seconds_per_view``: building the relighter (receivers, casters, merged caster and BVH) and
@@ -76,7 +77,8 @@ the caster misses or adds.
 
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
-scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``.
+scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``; ``--size 1000x750``
+times a smaller scene's views and layers resampled to that size (:func:`upscaled`).
 
 Run with the package importable; the demo takes about 30 s on 2 cores (9 s of it decomposing).
 """
@@ -323,7 +325,8 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) ->
                 "default, min_proxy_hits 0": RelightConfig(min_proxy_hits=0.0),
                 "default, min_cluster 20": RelightConfig(min_cluster=20),
                 "default, no blur": RelightConfig(blur=0.0),
-                "default, dropped clusters not brought into light": RelightConfig(light_dropped=False)}
+                "default, dropped clusters not brought into light": RelightConfig(light_dropped=False),
+                "default, unexplained pixels moved too (consistency None)": RelightConfig(consistency=None)}
     for label, config in variants.items():
         out[label] = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):
@@ -340,17 +343,44 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) ->
     return out
 
 
-def time_scene(folder: Path, n_suns: int = 5) -> dict:
+def upscaled(scene, decomposition, size: tuple[int, int]) -> tuple:
+    """The scene's views and the decomposition's layers resampled to ``size`` (W, H) pixels.
+
+    Images and shading layers bilinearly, the visibility and the labels by nearest neighbour,
+    the cameras by :meth:`~mvintrinsic.camera.Camera.scaled`; the proxy and the lighting stay.
+    For timing the steps whose cost follows the pixel count at a resolution not rendered.
+    """
+    import cv2
+
+    from mvintrinsic.results import Decomposition, IntrinsicLayers
+    from mvintrinsic.scene import Scene, View
+
+    def resize(array, nearest=False):
+        return cv2.resize(np.ascontiguousarray(array), size,
+                          interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR)
+
+    views = [View(v.stem, resize(np.asarray(v.image, np.float32)), v.camera.scaled(*size)) for v in scene.views]
+    layers = {s: IntrinsicLayers(s, reflectance=resize(x.reflectance), sun_shading=resize(x.sun_shading),
+                                 sky_shading=resize(x.sky_shading), indirect_shading=resize(x.indirect_shading),
+                                 visibility=resize(x.visibility, True), shadow_labels=resize(x.shadow_labels, True))
+              for s, x in decomposition.layers.items()}
+    return Scene(views, scene.proxy, scene.sun, up=scene.up), Decomposition(layers, decomposition.lighting)
+
+
+def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = None) -> dict:
     """Seconds per view to build the relighter of the ground-truth layers and to relight one sun.
 
     For scenes without relit renders (e.g. the 1000x750 speed scene): the caster is built from the
     ground-truth labels and ``n_suns`` suns 5 to 25 degrees of azimuth from the capture are
-    rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading).
+    rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading). With
+    ``size`` (W, H) the views and layers are first resampled to it (:func:`upscaled`).
     """
     scene = load_scene(folder)
     stems = scene.stems
     tracer = Tracer(scene.proxy)
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
+    if size is not None:
+        scene, ground_truth = upscaled(scene, ground_truth, size)
     start = time.perf_counter()
     relighter = Relighter(ground_truth, scene, tracer=tracer)
     build = time.perf_counter() - start
@@ -937,6 +967,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=None, help="score DATA/NAME (repeatable)")
     parser.add_argument("--timing", action="store_true",
                         help="only time the relighter on the ground-truth layers (scenes without relit renders)")
+    parser.add_argument("--size", default=None, help="with --timing: resample the views and layers to WxH first")
     parser.add_argument("--stride", action="store_true",
                         help="only compare RelightConfig.ray_stride 2 and 3 with 1 on the ground-truth layers")
     parser.add_argument("--softness", action="store_true",
@@ -967,7 +998,8 @@ def main(argv: list[str] | None = None) -> int:
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
-    studies = (("timing", "timing", time_scene), ("stride", "ray_stride", stride_scene),
+    size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
+    studies = (("timing", "timing", functools.partial(time_scene, size=size)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
                ("error_split", "error_split", error_split_scene))

@@ -213,6 +213,18 @@ class RelightConfig:
         1000x750, while a shadow thinner than ``ray_stride`` pixels that touches no sampled
         pixel, far from any other edge, is lost (module docstring, "Speed": 2 changes the relit
         PSNR by -0.010 to +0.007 dB against 1).
+    consistency : float or None
+        A pixel the proxy does not explain keeps its capture ``v_sun`` at every new sun: its
+        colour is more than ``consistency`` (median over the channels of ``|log I - log L|``,
+        ``L`` the median radiance of the proxy's vertices over the views that see them,
+        :func:`~mvintrinsic.env_shading.vertex_radiance`, both in the decomposition's common
+        exposure) from the proxy surface its ray hits, or its ray misses the proxy. There the
+        receiver point is not the surface the photograph shows (a crown in front of the facade
+        the proxy kept), so the receiver's new shadow says nothing about the pixel. > 0; None:
+        every pixel takes the moved shadow (the paper). Not in the paper; 0.3 as
+        :attr:`~mvintrinsic.occluders.OccluderConfig.consistency`, not tuned. Chosen by
+        measurement (module docstring of :mod:`mvintrinsic.relight`, "Pixels the proxy does not
+        explain").
     """
 
     tau_s: float = 0.8
@@ -229,6 +241,7 @@ class RelightConfig:
     casters: str = "own"
     completion_distance: float | str = "auto"
     ray_stride: int = 2
+    consistency: float | None = 0.3
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES)):
@@ -260,6 +273,10 @@ class RelightConfig:
             if not is_real(value) or not 0.0 <= value < np.inf:
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
             object.__setattr__(self, name, float(value))
+        if self.consistency is not None:
+            if not is_real(self.consistency) or not 0.0 < self.consistency < np.inf:
+                raise ValueError(f"consistency must be a finite number > 0 or None, got {self.consistency!r}")
+            object.__setattr__(self, "consistency", float(self.consistency))
 
 
 @dataclass(frozen=True, eq=False)

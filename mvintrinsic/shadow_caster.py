@@ -75,7 +75,7 @@ References
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 from scipy import ndimage
@@ -85,8 +85,8 @@ from .camera import Camera
 from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array, _rays
 from .envmap import horizontal_frame
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene, vertex_normals
-from .scene import Sun
+from .raytrace import DEFAULT_BATCH, RayHits, Tracer, triangle_scene, vertex_normals
+from .scene import Sun, View
 
 __all__ = ["ShadowCaster", "as_sun_direction", "receiver_depth", "receiver_normals", "receiver_points"]
 
@@ -491,3 +491,58 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
         raise ValueError(f"normal_smoothing must be a finite number >= 0 (metres), got {normal_smoothing!r}")
     hits, _, _ = _cast_pixels(camera, tracer)
     return _pixel_normals(tracer, hits, camera.shape, vertex_normals(tracer.proxy, normal_smoothing))
+
+
+def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray], receivers: Mapping[str, np.ndarray],
+                        hits: Mapping[str, RayHits], known: Mapping[str, np.ndarray], consistency: float,
+                        depth_tolerance: float = 0.02, chunk: int = 1 << 20) -> dict[str, np.ndarray]:
+    """Per view, the pixels the proxy does not explain (:attr:`RelightConfig.consistency`), (H, W) bool.
+
+    A pixel's receiver point is projected into every other view; where it lies in the image, in
+    front of the camera, on a valid pixel and within ``depth_tolerance`` (relative, either side)
+    of that view's proxy depth there (the occlusion test of
+    :func:`~mvintrinsic.env_shading.vertex_observations`), that view's pixel sees the same proxy
+    point. The pixel is unexplained when it has an estimate (``known``) and its ray misses the
+    proxy, or when at least one other view sees its point and the median over the channels of
+    ``|log(I + 1e-3) - log(M + 1e-3)|`` is not below ``consistency``, ``M`` the median of those
+    views' values (nearest pixel; every image divided by its exposure gain, ``gains``, the
+    decomposition's ``lighting.gain``).
+    A point no other view sees gives no evidence: the pixel keeps the moved shadow. ``chunk``
+    receiver points at a time (memory: 12 bytes per point and other view).
+    """
+    images = {v.stem: np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32) for v in views}
+    depths = {v.stem: hits[v.stem].t.reshape(v.shape) for v in views}
+    out = {}
+    for view in views:
+        others = [other for other in views if other.stem != view.stem]
+        all_points = receivers[view.stem].reshape(-1, 3)
+        own_values = images[view.stem].reshape(-1, 3)
+        inconsistent = np.zeros(len(all_points), dtype=bool)
+        for start in range(0, len(all_points) if others else 0, chunk):
+            points = all_points[start:start + chunk]
+            samples = np.full((len(others), len(points), 3), np.nan, dtype=np.float32)
+            for k, other in enumerate(others):
+                camera = other.camera
+                pixels, z = camera.project(points)
+                idx = np.flatnonzero((z > 0) & camera.in_image(pixels))
+                col = np.clip(pixels[idx, 0].astype(np.int64), 0, camera.width - 1)
+                row = np.clip(pixels[idx, 1].astype(np.int64), 0, camera.height - 1)
+                distance = np.linalg.norm(points[idx] - camera.center, axis=1)
+                depth = depths[other.stem][row, col]
+                ok = (np.abs(distance - depth) <= depth_tolerance * depth) & other.mask[row, col]
+                samples[k, idx[ok]] = images[other.stem][row[ok], col[ok]]
+            count = np.isfinite(samples[..., 0]).sum(axis=0)
+            seen_by = np.flatnonzero(count)
+            # np.nanmedian over the views, faster: NaN sorts last, the median of the n finite values
+            ordered = np.sort(samples[:, seen_by], axis=0)
+            n = count[seen_by][None, :, None]
+            low = np.take_along_axis(ordered, np.broadcast_to((n - 1) // 2, (1, *ordered.shape[1:])), axis=0)[0]
+            high = np.take_along_axis(ordered, np.broadcast_to(n // 2, (1, *ordered.shape[1:])), axis=0)[0]
+            own = own_values[start:start + chunk][seen_by]
+            median = np.maximum(0.5 * (low + high), 0.0)
+            with np.errstate(invalid="ignore"):
+                distance = np.median(np.abs(np.log(np.maximum(own, 0.0) + 1e-3) - np.log(median + 1e-3)), axis=-1)
+            inconsistent[start + seen_by] = ~(distance < consistency)
+        hit = hits[view.stem].hit
+        out[view.stem] = known[view.stem] & (~hit | inconsistent).reshape(view.shape)
+    return out

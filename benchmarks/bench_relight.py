@@ -98,6 +98,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from bench_distributed import _parse_size, upsampled
 from bench_shadows import away_from_edges
 from scipy import ndimage
 
@@ -346,25 +347,23 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) ->
 def upscaled(scene, decomposition, size: tuple[int, int]) -> tuple:
     """The scene's views and the decomposition's layers resampled to ``size`` (W, H) pixels.
 
-    Images and shading layers bilinearly, the visibility and the labels by nearest neighbour,
-    the cameras by :meth:`~mvintrinsic.camera.Camera.scaled`; the proxy and the lighting stay.
-    For timing the steps whose cost follows the pixel count at a resolution not rendered.
+    The views as :func:`bench_distributed.upsampled` resamples them; the shading layers
+    bilinearly, the visibility and the labels by nearest neighbour; the proxy and the lighting
+    stay. For timing the steps whose cost follows the pixel count at a resolution not rendered.
     """
     import cv2
 
     from mvintrinsic.results import Decomposition, IntrinsicLayers
-    from mvintrinsic.scene import Scene, View
 
     def resize(array, nearest=False):
         return cv2.resize(np.ascontiguousarray(array), size,
                           interpolation=cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR)
 
-    views = [View(v.stem, resize(np.asarray(v.image, np.float32)), v.camera.scaled(*size)) for v in scene.views]
     layers = {s: IntrinsicLayers(s, reflectance=resize(x.reflectance), sun_shading=resize(x.sun_shading),
                                  sky_shading=resize(x.sky_shading), indirect_shading=resize(x.indirect_shading),
                                  visibility=resize(x.visibility, True), shadow_labels=resize(x.shadow_labels, True))
               for s, x in decomposition.layers.items()}
-    return Scene(views, scene.proxy, scene.sun, up=scene.up), Decomposition(layers, decomposition.lighting)
+    return upsampled(scene, *size), Decomposition(layers, decomposition.lighting)
 
 
 def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = None) -> dict:
@@ -998,7 +997,7 @@ def main(argv: list[str] | None = None) -> int:
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
-    size = tuple(int(v) for v in args.size.lower().split("x")) if args.size else None
+    size = _parse_size(args.size) if args.size else None
     studies = (("timing", "timing", functools.partial(time_scene, size=size)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),

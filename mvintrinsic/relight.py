@@ -114,7 +114,7 @@ rises at every scene-sun, by 0.04-0.77 dB, and with the pipeline's (row (e)) by 
 up on courtyard_s1 (whose crowns fill the views), street_s0 and demo_480, down by 0.05-0.06 dB at
 three of street_s2's suns; it brings row (e) above the input at every scene-sun
 (``docs/relight.md`` has the tables). With one view, or a point no other view sees, there is no
-evidence and the pixel keeps the moved shadow. 0.9 s per view at 1000x750 with six views (a
+evidence and the pixel keeps the moved shadow. 1.0 s per view at 1000x750 with six views (a
 projection of every receiver point into every other view), nothing per new sun.
 
 Sources: the paper's Sec. 8 [1]_; the Preetham sky [2]_; the Rayleigh optical depth [3]_ and the air
@@ -180,10 +180,10 @@ from .relit_shading import (
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene
 from .shadow_caster import (
-    _unexplained_pixels,
     ShadowCaster,
     _cast_pixels,
     _pixel_normals,
+    _unexplained_pixels,
     as_sun_direction,
     receiver_depth,
     receiver_normals,

@@ -529,7 +529,8 @@ def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray], 
                 row = np.clip(pixels[idx, 1].astype(np.int64), 0, camera.height - 1)
                 distance = np.linalg.norm(points[idx] - camera.center, axis=1)
                 depth = depths[other.stem][row, col]
-                ok = (np.abs(distance - depth) <= depth_tolerance * depth) & other.mask[row, col]
+                # a pixel whose ray misses the proxy (depth inf) sees no proxy point
+                ok = np.isfinite(depth) & (np.abs(distance - depth) <= depth_tolerance * depth) & other.mask[row, col]
                 samples[k, idx[ok]] = images[other.stem][row[ok], col[ok]]
             count = np.isfinite(samples[..., 0]).sum(axis=0)
             seen_by = np.flatnonzero(count)

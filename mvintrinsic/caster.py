@@ -125,6 +125,9 @@ RELIGHT_METHODS = ("multiview", "paper")
 #: Which caster shades a view, :attr:`RelightConfig.casters`.
 CASTER_MODES = ("own", "merged")
 
+#: Which other views' new visibility a pixel's is averaged with, :attr:`RelightConfig.fusion` (or None).
+FUSION_MODES = ("capture", "all")
+
 
 @dataclass(frozen=True)
 class RelightConfig:
@@ -225,6 +228,17 @@ class RelightConfig:
         :attr:`~mvintrinsic.occluders.OccluderConfig.consistency`, not tuned. Chosen by
         measurement (module docstring of :mod:`mvintrinsic.relight`, "Pixels the proxy does not
         explain").
+    fusion : {"capture", "all"} or None
+        The new ``v'`` of a pixel is the mean of its own and of the other views' ``v'`` at the
+        pixels that see its receiver point (depth-tested, as for ``consistency``), over the
+        pixels the proxy explains on both sides (not flagged by ``consistency``; with
+        ``consistency=None``, every pixel whose ray hits the proxy), weight 1 each:
+        ``"capture"`` (default) only the views whose capture state there (``v_sun >= 0.5``) is the
+        pixel's own, so that each view's reflectance, which its own label made, meets the
+        shadow state it was made for; ``"all"`` every such view (the relit shadow state agrees
+        more across views, the relit images are further from the truth where the views' labels
+        disagree); None: each view alone (the paper). Not in the paper (module docstring of
+        :mod:`mvintrinsic.relight`, "One shadow in every view").
     """
 
     tau_s: float = 0.8
@@ -242,10 +256,13 @@ class RelightConfig:
     completion_distance: float | str = "auto"
     ray_stride: int = 2
     consistency: float | None = 0.3
+    fusion: str | None = "capture"
 
     def __post_init__(self) -> None:
-        for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES)):
+        for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES)):
             value = getattr(self, name)
+            if name == "fusion" and value is None:
+                continue
             if not isinstance(value, str) or value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")
         if not isinstance(self.sky, str) or self.sky not in SKY_ADJUSTMENTS:

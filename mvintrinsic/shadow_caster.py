@@ -78,7 +78,7 @@ import math
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
-from scipy import ndimage
+from scipy import ndimage, sparse
 
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
@@ -493,45 +493,72 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
     return _pixel_normals(tracer, hits, camera.shape, vertex_normals(tracer.proxy, normal_smoothing))
 
 
-def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray], receivers: Mapping[str, np.ndarray],
-                        hits: Mapping[str, RayHits], known: Mapping[str, np.ndarray], consistency: float,
-                        depth_tolerance: float = 0.02, chunk: int = 1 << 20) -> dict[str, np.ndarray]:
-    """Per view, the pixels the proxy does not explain (:attr:`RelightConfig.consistency`), (H, W) bool.
+def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray], hits: Mapping[str, RayHits],
+                      depth_tolerance: float = 0.02) -> dict[str, list[tuple[int, np.ndarray, np.ndarray]]]:
+    """Per view, the other views' pixels that see its pixels' receiver points.
 
-    A pixel's receiver point is projected into every other view; where it lies in the image, in
-    front of the camera, on a valid pixel and within ``depth_tolerance`` (relative, either side)
-    of that view's proxy depth there (the occlusion test of
-    :func:`~mvintrinsic.env_shading.vertex_observations`), that view's pixel sees the same proxy
-    point. The pixel is unexplained when it has an estimate (``known``) and its ray misses the
-    proxy, or when at least one other view sees its point and the median over the channels of
-    ``|log(I + 1e-3) - log(M + 1e-3)|`` is not below ``consistency``, ``M`` the median of those
-    views' values (nearest pixel; every image divided by its exposure gain, ``gains``, the
-    decomposition's ``lighting.gain``).
-    A point no other view sees gives no evidence: the pixel keeps the moved shadow. ``chunk``
-    receiver points at a time (memory: 12 bytes per point and other view).
+    A pixel whose ray hits the proxy has its receiver point projected into every other view;
+    where it lies in the image, in front of the camera, on a valid pixel whose own ray hits the
+    proxy, and within ``depth_tolerance`` (relative, either side) of that pixel's proxy depth
+    (the occlusion test of :func:`~mvintrinsic.env_shading.vertex_observations`), that view's
+    pixel (nearest) sees the same proxy point.
+
+    Returns
+    -------
+    dict of str to list of (int, (K,) int64, (K,) int64)
+        Per view stem, per other view: its index in ``views``, the flat indices of the view's
+        pixels (ascending) and those of the other view's pixels that see them.
     """
-    images = {v.stem: np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32) for v in views}
     depths = {v.stem: hits[v.stem].t.reshape(v.shape) for v in views}
     out = {}
     for view in views:
-        others = [other for other in views if other.stem != view.stem]
-        all_points = receivers[view.stem].reshape(-1, 3)
+        own = np.flatnonzero(hits[view.stem].hit)
+        points = receivers[view.stem].reshape(-1, 3)[own]
+        links = []
+        for k, other in enumerate(views):
+            if other.stem == view.stem:
+                continue
+            camera = other.camera
+            pixels, z = camera.project(points)
+            inside = np.flatnonzero((z > 0) & camera.in_image(pixels))
+            col = np.clip(pixels[inside, 0].astype(np.int64), 0, camera.width - 1)
+            row = np.clip(pixels[inside, 1].astype(np.int64), 0, camera.height - 1)
+            distance = np.linalg.norm(points[inside] - camera.center, axis=1)
+            depth = depths[other.stem][row, col]
+            # a pixel whose ray misses the proxy (depth inf) sees no proxy point
+            ok = np.isfinite(depth) & (np.abs(distance - depth) <= depth_tolerance * depth) & other.mask[row, col]
+            links.append((k, own[inside[ok]], row[ok] * camera.width + col[ok]))
+        out[view.stem] = links
+    return out
+
+
+def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray],
+                        shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]], hits: Mapping[str, RayHits],
+                        known: Mapping[str, np.ndarray], consistency: float, chunk: int = 1 << 20
+                        ) -> dict[str, np.ndarray]:
+    """Per view, the pixels the proxy does not explain (:attr:`RelightConfig.consistency`), (H, W) bool.
+
+    The pixel is unexplained when it has an estimate (``known``) and its ray misses the proxy,
+    or when at least one other view sees its receiver point (``shared``,
+    :func:`_shared_receivers`) and the median over the channels of
+    ``|log(I + 1e-3) - log(M + 1e-3)|`` is not below ``consistency``, ``M`` the median of those
+    views' values (every image divided by its exposure gain, ``gains``, the decomposition's
+    ``lighting.gain``). A point no other view sees gives no evidence: the pixel keeps the moved
+    shadow. ``chunk`` pixels at a time (memory: 12 bytes per pixel and other view).
+    """
+    images = {v.stem: np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32) for v in views}
+    out = {}
+    for view in views:
+        links = shared[view.stem]
         own_values = images[view.stem].reshape(-1, 3)
-        inconsistent = np.zeros(len(all_points), dtype=bool)
-        for start in range(0, len(all_points) if others else 0, chunk):
-            points = all_points[start:start + chunk]
-            samples = np.full((len(others), len(points), 3), np.nan, dtype=np.float32)
-            for k, other in enumerate(others):
-                camera = other.camera
-                pixels, z = camera.project(points)
-                idx = np.flatnonzero((z > 0) & camera.in_image(pixels))
-                col = np.clip(pixels[idx, 0].astype(np.int64), 0, camera.width - 1)
-                row = np.clip(pixels[idx, 1].astype(np.int64), 0, camera.height - 1)
-                distance = np.linalg.norm(points[idx] - camera.center, axis=1)
-                depth = depths[other.stem][row, col]
-                # a pixel whose ray misses the proxy (depth inf) sees no proxy point
-                ok = np.isfinite(depth) & (np.abs(distance - depth) <= depth_tolerance * depth) & other.mask[row, col]
-                samples[k, idx[ok]] = images[other.stem][row[ok], col[ok]]
+        n_pixels = len(own_values)
+        inconsistent = np.zeros(n_pixels, dtype=bool)
+        for start in range(0, n_pixels if links else 0, chunk):
+            stop = min(start + chunk, n_pixels)
+            samples = np.full((len(links), stop - start, 3), np.nan, dtype=np.float32)
+            for j, (k, own, theirs) in enumerate(links):
+                lo, hi = np.searchsorted(own, (start, stop))
+                samples[j, own[lo:hi] - start] = images[views[k].stem].reshape(-1, 3)[theirs[lo:hi]]
             count = np.isfinite(samples[..., 0]).sum(axis=0)
             seen_by = np.flatnonzero(count)
             # np.nanmedian over the views, faster: NaN sorts last, the median of the n finite values
@@ -539,7 +566,7 @@ def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray], 
             n = count[seen_by][None, :, None]
             low = np.take_along_axis(ordered, np.broadcast_to((n - 1) // 2, (1, *ordered.shape[1:])), axis=0)[0]
             high = np.take_along_axis(ordered, np.broadcast_to(n // 2, (1, *ordered.shape[1:])), axis=0)[0]
-            own = own_values[start:start + chunk][seen_by]
+            own = own_values[start:stop][seen_by]
             median = np.maximum(0.5 * (low + high), 0.0)
             with np.errstate(invalid="ignore"):
                 distance = np.median(np.abs(np.log(np.maximum(own, 0.0) + 1e-3) - np.log(median + 1e-3)), axis=-1)
@@ -547,3 +574,40 @@ def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray], 
         hit = hits[view.stem].hit
         out[view.stem] = known[view.stem] & (~hit | inconsistent).reshape(view.shape)
     return out
+
+
+def _fusion_matrices(views: Sequence[View], shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]],
+                     explained: Mapping[str, np.ndarray], capture: Mapping[str, np.ndarray], mode: str
+                     ) -> dict[str, sparse.csr_matrix]:
+    """Per view, the (H*W, total pixels) averaging matrix of :attr:`RelightConfig.fusion`.
+
+    Row ``i`` of a view's matrix averages, with weight 1 each, its own pixel ``i`` and the other
+    views' pixels that see its receiver point (``shared``), where both are ``explained`` ((H, W)
+    bool per view) and, with ``mode="capture"``, both have the same capture state
+    (``capture >= 0.5``, (H, W) per view). Columns index the views' flattened pixels one view
+    after the other, in ``views`` order; a row with no such pixel is the identity.
+    """
+    offsets = np.cumsum([0] + [int(np.prod(v.shape)) for v in views])
+    flat_explained = [np.asarray(explained[v.stem], bool).ravel() for v in views]
+    flat_lit = [(np.asarray(capture[v.stem]) >= 0.5).ravel() for v in views]
+    out = {}
+    for a, view in enumerate(views):
+        n_pixels = offsets[a + 1] - offsets[a]
+        rows, cols = [np.arange(n_pixels)], [offsets[a] + np.arange(n_pixels)]
+        for k, own, theirs in shared[view.stem]:
+            keep = flat_explained[a][own] & flat_explained[k][theirs]
+            if mode == "capture":
+                keep &= flat_lit[a][own] == flat_lit[k][theirs]
+            rows.append(own[keep])
+            cols.append(offsets[k] + theirs[keep])
+        rows, cols = np.concatenate(rows), np.concatenate(cols)
+        weights = (1.0 / np.bincount(rows, minlength=n_pixels))[rows].astype(np.float32)
+        out[view.stem] = sparse.csr_matrix((weights, (rows, cols)), shape=(n_pixels, offsets[-1]))
+    return out
+
+
+def _fuse(fusion: Mapping[str, sparse.csr_matrix], visibility: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """:func:`_fusion_matrices` applied to every view's ``v'`` ((H, W) float32 per stem, in their order)."""
+    stacked = np.concatenate([np.asarray(v, np.float32).ravel() for v in visibility.values()])
+    return {s: np.clip(fusion[s] @ stacked, 0.0, 1.0).astype(np.float32).reshape(np.shape(v))
+            for s, v in visibility.items()}

@@ -42,8 +42,10 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
   options, one changed at a time from the default: the merged caster, the paper's checks
   (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
   (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, without bringing the
-  dropped clusters into light, and with the pixels the proxy does not explain relit like the
-  others (``consistency=None``, the paper);
+  dropped clusters into light, with the pixels the proxy does not explain relit like the
+  others (``consistency=None``, the paper), each view's new shadow alone (``fusion=None``, the
+  paper) and fused over every view that sees a point (``fusion="all"``); per row also the
+  ``agreement_interior`` at each relit sun;
 * ``mesh_visibility_iou``: row (c)'s shadow (``< 0.5``) against ``gt/relit/<tag>/sun_visibility``
   over the non-sky pixels, without and with the blur (a check of the bound);
 * ``seconds_per_view``: building the relighter (receivers, casters, merged caster and BVH) and
@@ -309,13 +311,14 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     entry["better_sky"] = {
         row: max(SKY_ADJUSTMENTS, key=lambda sky: np.mean([entry["psnr"][sky][t][row]["mean"] for t in tags]))
         for row in ROWS[1:]}
-    entry["caster_study"] = caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask)
+    entry["caster_study"] = caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, agreement)
     entry["agreement_points"] = len(points)
     return entry, figure
 
 
-def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) -> dict:
-    """Rows (d) and (e) under other caster options (the default environment adjustment)."""
+def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, agreement) -> dict:
+    """Rows (d) and (e) under other caster options (the default environment adjustment), and their
+    cross-view agreement away from the true edges (``agreement(visibility, true_lit)``)."""
     out = {}
     default = RelightConfig()
     variants = {"default (multiview votes, own casters)": default,
@@ -327,18 +330,22 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask) ->
                 "default, min_cluster 20": RelightConfig(min_cluster=20),
                 "default, no blur": RelightConfig(blur=0.0),
                 "default, dropped clusters not brought into light": RelightConfig(light_dropped=False),
-                "default, unexplained pixels moved too (consistency None)": RelightConfig(consistency=None)}
+                "default, unexplained pixels moved too (consistency None)": RelightConfig(consistency=None),
+                "default, each view alone (fusion None)": RelightConfig(fusion=None),
+                "default, fused over every view (fusion all)": RelightConfig(fusion="all")}
     for label, config in variants.items():
         out[label] = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):
             relighter = Relighter(decomposition, scene, config=config, tracer=tracer)
-            row = {"triangles": len(relighter.caster.triangles)}
-            suns = {"capture": (relighter.sun, inputs)} | {t: (d, images) for t, (d, images, _) in tags.items()}
-            for tag, (direction, images) in suns.items():
+            row = {"triangles": len(relighter.caster.triangles), "agreement_interior": {}}
+            suns = {"capture": (relighter.sun, inputs, None)} | {t: (d, im, vis) for t, (d, im, vis) in tags.items()}
+            for tag, (direction, images, true_lit) in suns.items():
                 visibility = relighter.visibility_at(direction)
                 row[tag] = mean_psnr(relighter.render(direction, visibility=visibility), images, sky_mask)["mean"]
+                if true_lit is not None:
+                    row["agreement_interior"][tag] = agreement(visibility, true_lit)
             out[label][name] = row
-        scores = [f"{n} " + " ".join(f"{t} {v:.2f}" for t, v in r.items() if t != "triangles")
+        scores = [f"{n} " + " ".join(f"{t} {v:.2f}" for t, v in r.items() if t not in ("triangles", "agreement_interior"))
                   for n, r in out[label].items()]
         print(f"  caster study: {label:48s} " + " ".join(scores), flush=True)
     return out

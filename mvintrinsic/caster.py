@@ -218,10 +218,10 @@ class RelightConfig:
         PSNR by -0.010 to +0.007 dB against 1).
     consistency : float or None
         A pixel the proxy does not explain keeps its capture ``v_sun`` at every new sun: its
-        colour is more than ``consistency`` (median over the channels of ``|log I - log M|``,
-        ``M`` the median of what the other views see at its receiver point, occlusion-tested,
-        both in the decomposition's common exposure) from what the other views see there, or
-        its ray misses the proxy. There the
+        colour is at least ``consistency`` (median over the channels of ``|log I - log I_o|``,
+        both in the decomposition's common exposure) from what each of the other views that see
+        its receiver point (occlusion-tested) sees there, ``I_o``, or its ray misses the proxy.
+        There the
         receiver point is not the surface the photograph shows (a crown in front of the facade
         the proxy kept), so the receiver's new shadow says nothing about the pixel. > 0; None:
         every pixel takes the moved shadow (the paper). Not in the paper; 0.3 as

@@ -534,43 +534,29 @@ def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray]
 
 def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray],
                         shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]], hits: Mapping[str, RayHits],
-                        known: Mapping[str, np.ndarray], consistency: float, chunk: int = 1 << 20
-                        ) -> dict[str, np.ndarray]:
+                        known: Mapping[str, np.ndarray], consistency: float) -> dict[str, np.ndarray]:
     """Per view, the pixels the proxy does not explain (:attr:`RelightConfig.consistency`), (H, W) bool.
 
     The pixel is unexplained when it has an estimate (``known``) and its ray misses the proxy,
     or when at least one other view sees its receiver point (``shared``,
-    :func:`_shared_receivers`) and the median over the channels of
-    ``|log(I + 1e-3) - log(M + 1e-3)|`` is not below ``consistency``, ``M`` the median of those
-    views' values (every image divided by its exposure gain, ``gains``, the decomposition's
+    :func:`_shared_receivers`) and none of them sees a colour near its own there: for every such
+    view the median over the channels of ``|log(I + 1e-3) - log(I_other + 1e-3)|`` is not below
+    ``consistency`` (every image divided by its exposure gain, ``gains``, the decomposition's
     ``lighting.gain``). A point no other view sees gives no evidence: the pixel keeps the moved
-    shadow. ``chunk`` pixels at a time (memory: 12 bytes per pixel and other view).
+    shadow.
     """
     images = {v.stem: np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32) for v in views}
+    logs = {s: np.log(np.maximum(image, 0.0) + np.float32(1e-3)).reshape(-1, 3) for s, image in images.items()}
     out = {}
     for view in views:
         links = shared[view.stem]
-        own_values = images[view.stem].reshape(-1, 3)
-        n_pixels = len(own_values)
-        inconsistent = np.zeros(n_pixels, dtype=bool)
-        for start in range(0, n_pixels if links else 0, chunk):
-            stop = min(start + chunk, n_pixels)
-            samples = np.full((len(links), stop - start, 3), np.nan, dtype=np.float32)
-            for j, (k, own, theirs) in enumerate(links):
-                lo, hi = np.searchsorted(own, (start, stop))
-                samples[j, own[lo:hi] - start] = images[views[k].stem].reshape(-1, 3)[theirs[lo:hi]]
-            count = np.isfinite(samples[..., 0]).sum(axis=0)
-            seen_by = np.flatnonzero(count)
-            # np.nanmedian over the views, faster: NaN sorts last, the median of the n finite values
-            ordered = np.sort(samples[:, seen_by], axis=0)
-            n = count[seen_by][None, :, None]
-            low = np.take_along_axis(ordered, np.broadcast_to((n - 1) // 2, (1, *ordered.shape[1:])), axis=0)[0]
-            high = np.take_along_axis(ordered, np.broadcast_to(n // 2, (1, *ordered.shape[1:])), axis=0)[0]
-            own = own_values[start:stop][seen_by]
-            median = np.maximum(0.5 * (low + high), 0.0)
-            with np.errstate(invalid="ignore"):
-                distance = np.median(np.abs(np.log(np.maximum(own, 0.0) + 1e-3) - np.log(median + 1e-3)), axis=-1)
-            inconsistent[start + seen_by] = ~(distance < consistency)
+        own_logs = logs[view.stem]
+        n_pixels = len(own_logs)
+        nearest = np.full(n_pixels, np.inf, dtype=np.float32)  # the smallest distance to another view's colour
+        for k, own, theirs in links:  # a pixel appears at most once per other view
+            distance = np.median(np.abs(own_logs[own] - logs[views[k].stem][theirs]), axis=-1)
+            nearest[own] = np.minimum(nearest[own], distance)
+        inconsistent = np.isfinite(nearest) & ~(nearest < consistency)
         hit = hits[view.stem].hit
         out[view.stem] = known[view.stem] & (~hit | inconsistent).reshape(view.shape)
     return out
@@ -607,7 +593,7 @@ def _fusion_matrices(views: Sequence[View], shared: Mapping[str, list[tuple[int,
 
 
 def _fuse(fusion: Mapping[str, sparse.csr_matrix], visibility: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """:func:`_fusion_matrices` applied to every view's ``v'`` ((H, W) float32 per stem, in their order)."""
-    stacked = np.concatenate([np.asarray(v, np.float32).ravel() for v in visibility.values()])
-    return {s: np.clip(fusion[s] @ stacked, 0.0, 1.0).astype(np.float32).reshape(np.shape(v))
-            for s, v in visibility.items()}
+    """:func:`_fusion_matrices` applied to every view's ``v'`` ((H, W) per stem), in the matrices' view order."""
+    stacked = np.concatenate([np.asarray(visibility[s], np.float32).ravel() for s in fusion])
+    return {s: np.clip(fusion[s] @ stacked, 0.0, 1.0).astype(np.float32).reshape(np.shape(visibility[s]))
+            for s in fusion}

@@ -151,17 +151,27 @@ def surface_points(view: View, quantities: PixelQuantities) -> np.ndarray:
 def _sees(view: View, quantities: PixelQuantities, points: np.ndarray, depth_tolerance: float
           ) -> tuple[np.ndarray, np.ndarray]:
     """Which of ``points (N, 3)`` the view sees (depth test); their flat pixel indices there."""
-    pixels, z = view.camera.project(points)
-    inside = view.camera.in_image(pixels) & (z > 0)
+    return seen_pixels(view.camera, quantities.depth, quantities.valid & ~quantities.filled, points, depth_tolerance)
+
+
+def seen_pixels(camera, depth: np.ndarray, usable: np.ndarray, points: np.ndarray, depth_tolerance: float
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """Which of ``points (N, 3)`` a camera sees, and their flat pixel indices there (-1 where not).
+
+    A point is seen when it projects in front of the camera into the image, on a ``usable``
+    ((H, W) bool) pixel whose proxy ``depth`` ((H, W), metres along the ray; ``inf`` where the ray
+    misses) is within ``depth_tolerance`` of the point's distance (relative to that distance):
+    nothing of the proxy lies in front of it.
+    """
+    pixels, z = camera.project(points)
+    inside = camera.in_image(pixels) & (z > 0)
     k = np.flatnonzero(inside)
     col = pixels[k, 0].astype(np.int64)
     row = pixels[k, 1].astype(np.int64)
-    distance = np.linalg.norm(points[k] - view.camera.center, axis=1)
-    depth = quantities.depth[row, col]
-    usable = quantities.valid[row, col] & ~quantities.filled[row, col]
-    seen = usable & (np.abs(depth - distance) < depth_tolerance * distance)
+    distance = np.linalg.norm(points[k] - camera.center, axis=1)
+    seen = usable[row, col] & (np.abs(depth[row, col] - distance) < depth_tolerance * distance)
     flat = np.full(len(points), -1, dtype=np.int64)
-    flat[k[seen]] = row[seen] * view.shape[1] + col[seen]
+    flat[k[seen]] = row[seen] * depth.shape[1] + col[seen]
     return flat >= 0, flat
 
 

@@ -83,6 +83,7 @@ from scipy import ndimage, sparse
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
 from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array, _rays
+from .correspondence import seen_pixels
 from .envmap import horizontal_frame
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, RayHits, Tracer, triangle_scene, vertex_normals
@@ -498,10 +499,10 @@ def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray]
     """Per view, the other views' pixels that see its pixels' receiver points.
 
     A pixel whose ray hits the proxy has its receiver point projected into every other view;
-    where it lies in the image, in front of the camera, on a valid pixel whose own ray hits the
-    proxy, and within ``depth_tolerance`` (relative, either side) of that pixel's proxy depth
-    (the occlusion test of :func:`~mvintrinsic.env_shading.vertex_observations`), that view's
-    pixel (nearest) sees the same proxy point.
+    where that view sees it (:func:`~mvintrinsic.correspondence.seen_pixels`: in the image, in
+    front of the camera, on a valid pixel whose own ray hits the proxy at a depth within
+    ``depth_tolerance`` of the point's distance), that view's pixel (nearest) sees the same proxy
+    point.
 
     Returns
     -------
@@ -510,24 +511,16 @@ def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray]
         pixels (ascending) and those of the other view's pixels that see them.
     """
     depths = {v.stem: hits[v.stem].t.reshape(v.shape) for v in views}
+    usable = {v.stem: v.mask & hits[v.stem].hit.reshape(v.shape) for v in views}
     out = {}
     for view in views:
         own = np.flatnonzero(hits[view.stem].hit)
         points = receivers[view.stem].reshape(-1, 3)[own]
         links = []
         for k, other in enumerate(views):
-            if other.stem == view.stem:
-                continue
-            camera = other.camera
-            pixels, z = camera.project(points)
-            inside = np.flatnonzero((z > 0) & camera.in_image(pixels))
-            col = np.clip(pixels[inside, 0].astype(np.int64), 0, camera.width - 1)
-            row = np.clip(pixels[inside, 1].astype(np.int64), 0, camera.height - 1)
-            distance = np.linalg.norm(points[inside] - camera.center, axis=1)
-            depth = depths[other.stem][row, col]
-            # a pixel whose ray misses the proxy (depth inf) sees no proxy point
-            ok = np.isfinite(depth) & (np.abs(distance - depth) <= depth_tolerance * depth) & other.mask[row, col]
-            links.append((k, own[inside[ok]], row[ok] * camera.width + col[ok]))
+            if other.stem != view.stem:
+                seen, flat = seen_pixels(other.camera, depths[other.stem], usable[other.stem], points, depth_tolerance)
+                links.append((k, own[seen], flat[seen]))
         out[view.stem] = links
     return out
 
@@ -545,8 +538,8 @@ def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray],
     ``lighting.gain``). A point no other view sees gives no evidence: the pixel keeps the moved
     shadow.
     """
-    images = {v.stem: np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32) for v in views}
-    logs = {s: np.log(np.maximum(image, 0.0) + np.float32(1e-3)).reshape(-1, 3) for s, image in images.items()}
+    logs = {v.stem: np.log(np.maximum(np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32), 0.0)
+                           + np.float32(1e-3)).reshape(-1, 3) for v in views}
     out = {}
     for view in views:
         links = shared[view.stem]

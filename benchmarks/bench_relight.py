@@ -22,18 +22,18 @@ tags. For every relit tag ``gt/relit/<tag>`` (``docs/formats.md``) the relit vie
     the relighter's blur (``RelightConfig.blur``), what the blur costs;
 (d) ``gt_caster``: the ground-truth layers with our caster built from the ground-truth shadow
     labels (:class:`~mvintrinsic.relight.Relighter` with its defaults: the paper's parameters,
-    every view's votes, each view's own caster, proxy completion, the dropped clusters brought
-    into light);
+    every view's votes, each view's own caster, proxy completion, the dropped clusters' shadow
+    kept where it was);
 (e) ``pipeline``: the full pipeline, ``mvintrinsic.decompose(scene)`` then the Relighter.
 
-Rows (b) and (c) keep the true reflectance (``light_dropped=False``: the fix belongs to the
-caster). Every row is computed for both environment adjustments (``sky="paper"`` and
+Rows (b) and (c) keep the true layers and are given their shadow layer (``dropped="none"``: the
+handling of the dropped clusters belongs to the caster). Every row is computed for both environment adjustments (``sky="paper"`` and
 ``"model"``, :class:`~mvintrinsic.relight.RelightConfig`). Also reported:
 
 * ``capture_psnr``: rows (d) and (e) at the capture sun against the input image (what the caster
   loses before the sun moves);
 * ``agreement``: the cross-view consistency of the relit shadow state: the share of proxy vertices
-  seen by two or more views whose relit visibility ``>= 0.5`` is the same in all of them
+  seen by two or more views whose relit shadow state (:func:`shadow_layer` ``>= 0.5``) is the same in all of them
   (:func:`mvintrinsic.correspondence.cross_view_agreement`, Step 1's pixel quantities as Step 3
   uses them); ``truth`` is the same measure on ``gt/relit/<tag>/sun_visibility``;
   ``agreement_interior`` the same without reading the pixels within one pixel of a true relit
@@ -41,8 +41,8 @@ caster). Every row is computed for both environment adjustments (``sky="paper"``
 * ``caster_study``: rows (d) and (e) under other :class:`~mvintrinsic.relight.RelightConfig`
   options, one changed at a time from the default: the merged caster, the paper's checks
   (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
-  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, without bringing the
-  dropped clusters into light, with the pixels the proxy does not explain relit like the
+  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, the dropped clusters
+  brought into light (``dropped="light"``, the paper) or moved like every pixel (``"none"``), with the pixels the proxy does not explain relit like the
   others (``consistency=None``, the paper), each view's new shadow alone (``fusion=None``, the
   paper) and fused over every view that sees a point (``fusion="all"``); per row also the
   ``agreement_interior`` at each relit sun;
@@ -212,6 +212,16 @@ def caster_summary(relighter: Relighter) -> dict:
             "pixels_dropped": int(sum(c.dropped.sum() for c in relighter.casters.values()))}
 
 
+def shadow_layer(relighter: Relighter, visibility: dict) -> dict:
+    """The relit image's shadow layer: ``visibility`` with, under ``dropped="light"`` (the paper), the
+    dropped clusters' captured ``v_sun`` multiplied in, since there their shadow stays in the
+    reflectance while their ``v'`` says lit (``RelightConfig.dropped``); unchanged otherwise."""
+    if relighter.config.dropped != "light":
+        return visibility
+    return {s: np.where(relighter.casters[s].dropped, v * relighter.decomposition.layers[s].visibility, v)
+            for s, v in visibility.items()}
+
+
 def run_scene(folder: Path) -> tuple[dict, dict]:
     scene = load_scene(folder)
     stems = scene.stems
@@ -255,7 +265,7 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     default = RelightConfig()
     for sky in SKY_ADJUSTMENTS:
         config = RelightConfig(sky=sky)
-        plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+        plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
         relighters = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):
             start = time.perf_counter()
@@ -291,8 +301,9 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
             scores[tag] = rows
             if sky == default.sky:
                 for name in ("gt_proxy", "gt_mesh", "gt_caster", "pipeline"):
-                    entry["agreement"][tag][name] = agreement(relit_vis[name])
-                    entry["agreement_interior"][tag][name] = agreement(relit_vis[name], vis)
+                    state = shadow_layer(relighters[name], relit_vis[name]) if name in relighters else relit_vis[name]
+                    entry["agreement"][tag][name] = agreement(state)
+                    entry["agreement_interior"][tag][name] = agreement(state, vis)
                 entry["mesh_visibility_iou"][tag] = {}
                 for label, visibility in (("sharp", mesh_vis), ("blurred", blurred_vis)):
                     ious = []
@@ -329,7 +340,8 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 "default, min_proxy_hits 0": RelightConfig(min_proxy_hits=0.0),
                 "default, min_cluster 20": RelightConfig(min_cluster=20),
                 "default, no blur": RelightConfig(blur=0.0),
-                "default, dropped clusters not brought into light": RelightConfig(light_dropped=False),
+                "default, dropped clusters brought into light (dropped light, the paper)": RelightConfig(dropped="light"),
+                "default, dropped clusters moved like every pixel (dropped none)": RelightConfig(dropped="none"),
                 "default, unexplained pixels moved too (consistency None)": RelightConfig(consistency=None),
                 "default, each view alone (fusion None)": RelightConfig(fusion=None),
                 "default, fused over every view (fusion all)": RelightConfig(fusion="all")}
@@ -343,7 +355,7 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 visibility = relighter.visibility_at(direction)
                 row[tag] = mean_psnr(relighter.render(direction, visibility=visibility), images, sky_mask)["mean"]
                 if true_lit is not None:
-                    row["agreement_interior"][tag] = agreement(visibility, true_lit)
+                    row["agreement_interior"][tag] = agreement(shadow_layer(relighter, visibility), true_lit)
             out[label][name] = row
         scores = [f"{n} " + " ".join(f"{t} {v:.2f}" for t, v in r.items() if t not in ("triangles", "agreement_interior"))
                   for n, r in out[label].items()]
@@ -576,7 +588,7 @@ def bounds_scene(folder: Path) -> dict:
 
     The environment adjustment is the default (``RelightConfig.sky``); rows (a), (c), (d) and (e)
     as in :func:`run_scene`, then, for the ground-truth and the pipeline's layers (both with
-    ``light_dropped=False``, as row (c)):
+    ``dropped="none"``, as row (c)):
 
     * ``*_mesh``: the exact mesh's shadow (row (c)'s visibility);
     * ``*_truth``: the path tracer's visibility at the new sun (``gt/relit/<tag>/sun_visibility``);
@@ -590,7 +602,7 @@ def bounds_scene(folder: Path) -> dict:
     layers = {"gt": ground_truth_decomposition(folder, views=list(stems)), "pipeline": decompose(scene, tracer=tracer)}
     config = RelightConfig()
     ours = {name: Relighter(d, scene, config=config, tracer=tracer) for name, d in layers.items()}
-    plain = {name: Relighter(d, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+    plain = {name: Relighter(d, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
              for name, d in layers.items()}
     mesh = MeshShadow(folder, scene)
     out = {}
@@ -643,8 +655,8 @@ TRUE_TRANSITIONS = (("new shadow", True, False), ("stays shadow", False, False),
                     ("leaves shadow", False, True))
 
 #: Our states at the new sun, as :func:`error_split` codes them: shadow (visibility < 0.5), lit, and
-#: a pixel of a dropped cluster, whose captured darkness its reflectance keeps
-#: (``RelightConfig.light_dropped``): lit in the visibility, shadowed as it was in the image.
+#: a pixel of a dropped cluster, whose captured shadow stays where it was
+#: (``RelightConfig.dropped``: in the shadow layer by default, in the reflectance with ``"light"``).
 OURS_STATES = ("shadow", "lit", "dropped")
 
 
@@ -707,7 +719,7 @@ def error_split_scene(folder: Path) -> dict:
     tracer = Tracer(scene.proxy)
     config = RelightConfig()
     ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
-    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
     mesh = MeshShadow(folder, scene)
     out = {}
     for tag, (direction, images, visibility) in tags.items():
@@ -730,7 +742,7 @@ def receivers_scene(folder: Path) -> dict:
     row (c)'s at the exact mesh's. Here the occluder is made perfect, the exact mesh itself, and
     the rays still start at the proxy's receivers (offset ``RelightConfig.ray_offset`` toward the
     sun, the proxy's smoothed normals for the attached shadow, blurred as row (d)), on the
-    ground-truth layers with ``light_dropped=False`` as row (c):
+    ground-truth layers with ``dropped="none"`` as row (c):
 
     * ``exact_at_proxy``: every hit of the exact mesh shades;
     * ``exact_at_proxy_far``: hits nearer than ``AUTO_COMPLETION_DISTANCE`` (0.6 m) are ignored
@@ -755,7 +767,7 @@ def receivers_scene(folder: Path) -> dict:
     truth = ground_truth_decomposition(folder, views=list(stems))
     config = RelightConfig()
     ours = Relighter(truth, scene, config=config, tracer=tracer)
-    plain = Relighter(truth, scene, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+    plain = Relighter(truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
     mesh = MeshShadow(folder, scene)
     with _exact_receivers(scene, mesh):
         oracle = Relighter(truth, scene, config=config, tracer=tracer)
@@ -881,7 +893,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
         entry = {"triangles": int(len(proxy.triangles)) if proxy.triangles is not None else None,
                  "retention": {k: (float(retained[k]) if np.isfinite(retained[k]) else None)
                                for k in ("foliage", "thin")}, "psnr": {}}
-        plain = Relighter(truth, moved, config=dataclasses.replace(config, light_dropped=False), tracer=tracer)
+        plain = Relighter(truth, moved, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
         ours = Relighter(truth, moved, config=config, tracer=tracer)
         pipeline_relighter = None
         if name in pipeline:

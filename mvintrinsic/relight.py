@@ -35,11 +35,14 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
     the sun irradiance of all the views' receivers,
     ``mean(max(0, n . d') v') / mean(max(0, n . d) v_sun)``;
 
-* in-shadow reflectance fix: the pixels of dropped shadow clusters (too small or unsupported by
-  the proxy, :func:`build_caster`) are mislabellings the paper brings "in light using the v_sun
-  layer": their ``v_sun`` becomes 1 and their reflectance ``R (v_sun S_sun + S_env) / (S_sun +
-  S_env)``, i.e. ``I / (S_sun + S_sky + S_ind)`` (Eq. 2 with ``v_sun = 1``); the image is
-  unchanged at the capture sun;
+* dropped shadow clusters (too small or unsupported by the proxy, :func:`build_caster`): their
+  occluder is unknown. The paper brings them "in light using the v_sun layer" (``dropped="light"``:
+  ``v_sun`` 1, reflectance ``I / (S_sun + S_sky + S_ind)``, Eq. 2 with ``v_sun = 1``), so their
+  captured shadow stays in the reflectance while the shadow layer calls them lit; by default
+  (beyond the paper, ``dropped="static"``) the shadow stays in the shadow layer instead: at
+  every sun ``v' = v_sun v'_caster``, the reflectance the layers'. Both leave the image unchanged
+  at the capture sun; the second gives every view's shadow layer the shadow its image shows, so
+  the fusion below can average it (measurements: ``docs/relight.md``);
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new
@@ -88,18 +91,8 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
 * **Pixels without an estimate** (the layers hold 0: sky, invalid pixels, pixels the
   decomposition took for sky) show the input image in :meth:`Relighter.render` (``fill``); the
   paper's recolouring of the sky near the horizon is not done.
-* **On the demo the paper's caster keeps no cluster**: the demo's proxy lost 90% of the foliage
-  and of the thin structures, so the sun rays of the tree's and the fence's shadows miss it and
-  every large cluster has fewer than 30% proxy hits (the largest 26.5%), and the others are under
-  100 pixels: all are dropped and brought into light, and the relit shadows are the proxy's
-  completion only. Keeping them (``min_proxy_hits=0``) lowers the scores (the true layers 21.31 /
-  20.56 against 24.11 / 23.16), mostly through the merging (23.46 / 22.34 with each view's own
-  caster): the other views' sheets shade a view's lit pixels, 2520 of them in view_000 at the
-  capture sun, and about half of the triangles responsible come from pixels whose receiver lies
-  more than 10% off the surface they show (foliage and thin structures the proxy lacks). Each
-  triangle is a pixel footprint, hit by a few of the view's lit rays at most, so the
-  ``epsilon`` rule does not catch them (applied to the merged caster with every view's lit
-  pixels, it removes 300 of 41676 triangles).
+* **On the demo the paper's caster keeps no cluster** (the proxy lost 90% of the foliage and of
+  the thin structures; ``docs/relight.md``, "The demo's clusters").
 
 **Pixels the proxy does not explain** (:attr:`RelightConfig.consistency`, :attr:`Relighter.unexplained`).
 The new shadow is traced from each pixel's receiver point, the first proxy hit of its ray. Where
@@ -166,6 +159,7 @@ from ._cluster import _as_client, _Rebuilt, _ViewTasks
 from ._validation import as_array, config_or_default, describe
 from .caster import (
     CASTER_MODES,
+    DROPPED_MODES,
     RELIGHT_METHODS,
     SKY_ADJUSTMENTS,
     Caster,
@@ -216,6 +210,7 @@ __all__ = [
     "NORMAL_GRID_HEIGHT",
     "RGB_WAVELENGTHS_UM",
     "CASTER_MODES",
+    "DROPPED_MODES",
     "RELIGHT_METHODS",
     "SKY_ADJUSTMENTS",
     "SKY_GRID_HEIGHT",
@@ -303,6 +298,8 @@ class _NewSun:
         Pixels that keep ``capture`` at every sun (:attr:`Relighter.unexplained`); None: none.
     capture : (H, W) float32 or None
         The capture ``v_sun`` after the in-shadow fix (:attr:`Relighter.visibility`).
+    static : (H, W) bool or None
+        Pixels whose ``v'`` is ``capture`` times the caster's (``dropped="static"``); None: none.
     """
 
     def __init__(self, *, receivers: np.ndarray, shape: tuple[int, int], blocked: np.ndarray, min_distance: float,
@@ -310,8 +307,8 @@ class _NewSun:
                  fill: np.ndarray, reflectance: np.ndarray, fill_reflectance: np.ndarray, sky_shading: np.ndarray,
                  indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
                  sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
-                 capture: np.ndarray | None = None) -> None:
-        self.unexplained, self.capture = unexplained, capture
+                 capture: np.ndarray | None = None, static: np.ndarray | None = None) -> None:
+        self.unexplained, self.capture, self.static = unexplained, capture, static
         self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
         self.config, self.batch = config, batch
         self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
@@ -324,6 +321,8 @@ class _NewSun:
         visibility = shadow_caster._visibility(self.receivers, self.shape, direction, proxy_tracer=tracer,
                                                blocked=self.blocked, min_distance=self.min_distance, facing=None,
                                                config=self.config, batch=self.batch)
+        if self.static is not None:  # the shadow of a dropped cluster stays (RelightConfig.dropped)
+            visibility[self.static] *= self.capture[self.static]
         if self.unexplained is not None:
             np.copyto(visibility, self.capture, where=self.unexplained)
         return visibility
@@ -448,9 +447,9 @@ class Relighter:
         Per view, the receiver points (metres, :func:`receiver_points`) and unit proxy normals
         (:func:`receiver_normals`), world frame.
     reflectance : mapping of str to (H, W, 3) float32
-        ``R`` after the in-shadow fix (``config.light_dropped``).
+        ``R``, after the in-shadow fix with ``config.dropped="light"``.
     visibility : mapping of str to (H, W) float32
-        The capture ``v_sun`` after the fix (1 on the dropped clusters):
+        The capture ``v_sun``, after the fix with ``config.dropped="light"`` (1 on the dropped clusters):
         ``render(self.sun, visibility=self.visibility)`` reproduces every view's
         ``reflectance * shading``.
     unexplained : mapping of str to (H, W) bool
@@ -459,7 +458,7 @@ class Relighter:
         point); they keep :attr:`visibility` at every sun. Empty with ``consistency=None``.
     casters : mapping of str to Caster
         Per view, after the votes of every view (``method="multiview"``) and before merging
-        (``dropped`` holds the pixels brought into light).
+        (``dropped``: the pixels of the dropped clusters, ``config.dropped``).
     caster : Caster
         The union of the views' casters (:func:`merge_casters`).
     shadow_casters : mapping of str to ShadowCaster
@@ -538,7 +537,7 @@ class Relighter:
             known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (shading > 0).any(axis=-1))
             r, v = layers.reflectance, layers.visibility
             dropped = casters[stem].dropped
-            if config.light_dropped and dropped.any():
+            if config.dropped == "light" and dropped.any():
                 # Sec. 8: "We adjust the reflectance of such pixels to bring them in light using the
                 # v_sun layer": v_sun = 1 and R = I / (S_sun + S_sky + S_ind), I = R S_tot (Eq. 2).
                 in_light = layers.sun_shading.astype(np.float64) + layers.env_shading
@@ -769,7 +768,9 @@ class Relighter:
             radiance=self._radiance[stem], known=self._known[stem],
             sky_lookup=(_SphereLookup(self.normals[stem], NORMAL_GRID_HEIGHT, self.up)
                         if config.sky == "model" else None),
-            unexplained=self.unexplained.get(stem), capture=self.visibility[stem])
+            unexplained=self.unexplained.get(stem), capture=self.visibility[stem],
+            static=(self.casters[stem].dropped if config.dropped == "static" and self.casters[stem].dropped.any()
+                    else None))
 
     def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray], float | None]:
         """The environment's change at a new sun: ``(how, table)`` for :meth:`_NewSun.sky_factor`,

@@ -19,6 +19,7 @@ from mvintrinsic.camera import Camera
 from mvintrinsic.raytrace import Tracer, rasterize
 from mvintrinsic.raytrace import sun_visibility as vertex_visibility
 from mvintrinsic.relight import (
+    DROPPED_MODES,
     Caster,
     RelightConfig,
     Relighter,
@@ -576,13 +577,13 @@ def box_relit(scene):
 
 
 def test_relight_config_checks_the_new_fields():
-    assert RelightConfig().sky == "paper" and RelightConfig().light_dropped is True
+    assert RelightConfig().sky == "paper" and RelightConfig().dropped == "static"
     with pytest.raises(ValueError, match="sky.*'model', 'paper'"):
         RelightConfig(sky="hosek")
     with pytest.raises(ValueError, match="turbidity"):
         RelightConfig(turbidity=0.0)
-    with pytest.raises(ValueError, match="light_dropped"):
-        RelightConfig(light_dropped="yes")
+    with pytest.raises(ValueError, match="dropped must be one of 'static', 'light', 'none'"):
+        RelightConfig(dropped=True)
 
 
 def test_sun_forms_agree_and_invert_azimuth_elevation():
@@ -656,26 +657,49 @@ def test_receiver_normals_are_the_proxy_normals(scene):
     assert (normals[far][:, 2] > 0.999).all()
 
 
-@pytest.mark.parametrize("sky", ["paper", "model"])
-def test_relighting_at_the_capture_sun_with_the_layers_visibility_is_the_identity(box_relit, sky):
+@pytest.mark.parametrize(("sky", "dropped"), [("paper", "static"), ("model", "static"), ("paper", "light")])
+def test_relighting_at_the_capture_sun_with_the_layers_visibility_is_the_identity(box_relit, sky, dropped):
     decomposition, box_scene = box_relit
-    relighter = Relighter(decomposition, box_scene, config=RelightConfig(sky=sky))
+    relighter = Relighter(decomposition, box_scene, config=RelightConfig(sky=sky, dropped=dropped))
     layers = decomposition.layers["box"]
     expected = layers.reconstruct()
     for form in (relighter.sun, Sun(relighter.sun), (SUN_AZIMUTH, SUN_ELEVATION)):
         out = relighter.render(form, visibility=relighter.visibility, fill="zero")["box"]
         assert out.dtype == np.float32 and out.shape == (H, W, 3)
         assert np.abs(out - expected).max() <= IDENTITY_RTOL * expected.max()
-    # The false shadow was dropped and brought into light: v_sun 1, reflectance I / (S_sun + S_env).
-    dropped = relighter.casters["box"].dropped
-    assert dropped.sum() == 36
-    assert (relighter.visibility["box"][dropped] == 1).all()
-    with np.errstate(invalid="ignore", divide="ignore"):
-        in_light = expected / (layers.sun_shading + layers.env_shading)
-    np.testing.assert_allclose(relighter.reflectance["box"][dropped], in_light[dropped], rtol=1e-5)
+    dropped_pixels = relighter.casters["box"].dropped
+    assert dropped_pixels.sum() == 36
+    if dropped == "light":  # the false shadow brought into light: v_sun 1, reflectance I / (S_sun + S_env)
+        assert (relighter.visibility["box"][dropped_pixels] == 1).all()
+        with np.errstate(invalid="ignore", divide="ignore"):
+            in_light = expected / (layers.sun_shading + layers.env_shading)
+        np.testing.assert_allclose(relighter.reflectance["box"][dropped_pixels], in_light[dropped_pixels], rtol=1e-5)
+    else:  # "static": the layers as they are
+        np.testing.assert_array_equal(relighter.visibility["box"], layers.visibility)
+        np.testing.assert_array_equal(relighter.reflectance["box"], layers.reflectance)
     # With fill="input" the pixels without an estimate (the sky) show the input image.
     full = relighter.render(relighter.sun, visibility=relighter.visibility)["box"]
     np.testing.assert_array_equal(full[~scene_hit(relighter)], box_scene.views[0].image[~scene_hit(relighter)])
+
+
+def test_a_dropped_clusters_shadow_stays_where_it_was(box_relit):
+    # The false shadow's cluster is dropped (no occluder is known for it). After +15 degrees of
+    # azimuth: "static" keeps it in the shadow layer with the layers' reflectance, "light" (the
+    # paper) in the reflectance with a lit shadow layer, "none" lets it leave.
+    decomposition, box_scene = box_relit
+    layers = decomposition.layers["box"]
+    new_sun = (SUN_AZIMUTH + 15.0, SUN_ELEVATION)
+    out, visibility = {}, {}
+    for mode in DROPPED_MODES:
+        relighter = Relighter(decomposition, box_scene, config=RelightConfig(dropped=mode))
+        patch = relighter.casters["box"].dropped
+        visibility[mode] = relighter.visibility_at(new_sun)["box"][patch]
+        out[mode] = relighter.render(new_sun)["box"][patch]
+    assert visibility["static"].max() == 0.0 and visibility["light"].min() > 0.99 and visibility["none"].min() > 0.99
+    # Both keep the patch as dark as the other shadowed ground; "none" lights it up.
+    env = (layers.reflectance * layers.env_shading)[FALSE_SHADOW].reshape(-1, 3)
+    assert np.median(out["static"] / env) == pytest.approx(1.0, abs=0.05)
+    assert np.median(out["light"] / env) < 1.5 < np.median(out["none"] / env)
 
 
 def scene_hit(relighter: Relighter) -> np.ndarray:
@@ -695,7 +719,7 @@ def test_relighting_at_the_capture_sun_with_the_caster_reproduces_the_input(box_
     # Measured: 0.983 of the pixels farther than 3 pixels from a shadow edge (the 1-pixel blur), the
     # rest where the caster's shadow misses the box's attached shadow (0.891 of all pixels).
     assert close[~edges].mean() > 0.97
-    # The dropped false shadow is lit and keeps the input's colour (its reflectance took it).
+    # The dropped false shadow keeps the input's colour (its shadow stays: RelightConfig.dropped).
     dropped = relighter.casters["box"].dropped
     np.testing.assert_allclose(out[dropped], image[dropped], rtol=1e-4)
 

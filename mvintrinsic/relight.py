@@ -36,13 +36,13 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
     ``mean(max(0, n . d') v') / mean(max(0, n . d) v_sun)``;
 
 * dropped shadow clusters (too small or unsupported by the proxy, :func:`build_caster`): their
-  occluder is unknown. The paper brings them "in light using the v_sun layer" (``dropped="light"``:
-  ``v_sun`` 1, reflectance ``I / (S_sun + S_sky + S_ind)``), so the captured shadow stays in the
-  reflectance while the shadow layer calls them lit; by default (``"static"``, beyond the paper)
-  it stays in the shadow layer: ``v' = v_sun v'_caster``, the layers' reflectance. Both give the
-  image back at the capture sun; the second gives every view the shadow layer its image shows
-  (fused below): on five scenes the agreement rises at all 22 scene-suns, row (e) by -0.10 to
-  +0.29 dB (mean +0.05), row (d) by -0.29 to +0.13 (``docs/relight.md``);
+  occluder is unknown. The paper brings them "in light using the v_sun layer" (``dropped="light"``,
+  default: ``v_sun`` 1, reflectance ``I / (S_sun + S_sky + S_ind)``), so the captured shadow
+  stays in the reflectance while the shadow layer calls them lit; ``"static"`` (beyond the paper)
+  keeps it in the shadow layer: ``v' = v_sun v'_caster``, the layers' reflectance. Both give the
+  image back at the capture sun; ``"static"`` gives every view the shadow layer its image shows:
+  on five scenes the agreement rises at all 22 scene-suns, but row (e) moves by -0.10 to +0.29
+  dB (mean +0.05) and row (d) by -0.29 to +0.13: not better everywhere (``docs/relight.md``);
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new

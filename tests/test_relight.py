@@ -577,7 +577,7 @@ def box_relit(scene):
 
 
 def test_relight_config_checks_the_new_fields():
-    assert RelightConfig().sky == "paper" and RelightConfig().dropped == "static"
+    assert RelightConfig().sky == "paper" and RelightConfig().dropped == "light"
     with pytest.raises(ValueError, match="sky.*'model', 'paper'"):
         RelightConfig(sky="hosek")
     with pytest.raises(ValueError, match="turbidity"):
@@ -657,7 +657,7 @@ def test_receiver_normals_are_the_proxy_normals(scene):
     assert (normals[far][:, 2] > 0.999).all()
 
 
-@pytest.mark.parametrize(("sky", "dropped"), [("paper", "static"), ("model", "static"), ("paper", "light")])
+@pytest.mark.parametrize(("sky", "dropped"), [("paper", "light"), ("model", "light"), ("paper", "static")])
 def test_relighting_at_the_capture_sun_with_the_layers_visibility_is_the_identity(box_relit, sky, dropped):
     decomposition, box_scene = box_relit
     relighter = Relighter(decomposition, box_scene, config=RelightConfig(sky=sky, dropped=dropped))
@@ -719,7 +719,7 @@ def test_relighting_at_the_capture_sun_with_the_caster_reproduces_the_input(box_
     # Measured: 0.983 of the pixels farther than 3 pixels from a shadow edge (the 1-pixel blur), the
     # rest where the caster's shadow misses the box's attached shadow (0.891 of all pixels).
     assert close[~edges].mean() > 0.97
-    # The dropped false shadow keeps the input's colour (its shadow stays: RelightConfig.dropped).
+    # The dropped false shadow keeps the input's colour (its reflectance took it: RelightConfig.dropped).
     dropped = relighter.casters["box"].dropped
     np.testing.assert_allclose(out[dropped], image[dropped], rtol=1e-4)
 

@@ -128,7 +128,7 @@ CASTER_MODES = ("own", "merged")
 #: Which other views' new visibility a pixel's is averaged with, :attr:`RelightConfig.fusion` (or None).
 FUSION_MODES = ("capture", "all")
 #: How the pixels of dropped shadow clusters are relit (:attr:`RelightConfig.dropped`).
-DROPPED_MODES = ("static", "light", "none")
+DROPPED_MODES = ("light", "static", "none")
 
 
 @dataclass(frozen=True)
@@ -181,7 +181,7 @@ class RelightConfig:
         fitted sky (``decomposition.lighting.sky is None``, e.g. a ground truth); > 0. 3.5,
         Step 1's starting value (:class:`~mvintrinsic.skymodel.SkyConfig`), "the turbidity of a
         clear sky". Only the shape of the sky matters: its scale cancels in the ratio.
-    dropped : {"static", "light", "none"}
+    dropped : {"light", "static", "none"}
         How the pixels of dropped shadow clusters (too small or unsupported by the proxy,
         :func:`build_caster`: their occluder is unknown) are relit (:data:`DROPPED_MODES`).
         ``"light"`` (default, the paper, "We adjust the reflectance of such pixels to bring them
@@ -190,11 +190,11 @@ class RelightConfig:
         shadow layer calls them lit (:class:`Relighter`). ``"static"`` (beyond the paper): their
         shadow stays in the shadow layer: at every sun their ``v'`` is their capture ``v_sun``
         times the caster's, and their reflectance is the layers' (every view's shadow layer then
-        shows the shadow its image shows). ``"none"``: the
-        layers as they are, these pixels moved by the caster like every other (their shadow
-        leaves: for layers whose shadow layer is given at every sun, as the benchmark's rows
-        with the true shadows). The paper's by measurement: ``"static"`` raises the cross-view
-        agreement but not the relit PSNR on every scene (module docstring of :mod:`mvintrinsic.relight`).
+        shows the shadow its image shows). ``"none"``: the layers as they are, these pixels
+        moved by the caster like every other (their shadow leaves: for layers whose shadow layer
+        is given at every sun, as the benchmark's rows with the true shadows). The paper's by
+        measurement: ``"static"`` raises the cross-view agreement but not the relit PSNR on
+        every scene (module docstring of :mod:`mvintrinsic.relight`).
     method : {"multiview", "paper"}
         How the views' evidence is used (:data:`RELIGHT_METHODS`, module docstring, "Votes of
         every view"). ``"paper"``: each view's caster is checked against that view's lit pixels

@@ -582,7 +582,7 @@ def test_relight_config_checks_the_new_fields():
         RelightConfig(sky="hosek")
     with pytest.raises(ValueError, match="turbidity"):
         RelightConfig(turbidity=0.0)
-    with pytest.raises(ValueError, match="dropped must be one of 'static', 'light', 'none'"):
+    with pytest.raises(ValueError, match="dropped must be one of 'light', 'static', 'none'"):
         RelightConfig(dropped=True)
 
 

@@ -101,7 +101,7 @@ def bench_scene(folder: Path, *, occluders: bool = False) -> dict:
         cos1 = q.cosine[lr, lc].astype(np.float64)
         one, zero = np.ones(len(i1)), np.zeros(len(i1))
 
-        def eq5(e1, e2, c1, v2=zero, c2=zero):
+        def eq5(e1, e2, c1, v2=zero, c2=zero, i1=i1, i2=i2, one=one):
             return sun_radiance_from_pair(i1, i2, e1, e2, one, v2, c1, c2)
 
         ours = eq5(env1, env2, cos1)

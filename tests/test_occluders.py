@@ -137,10 +137,11 @@ def test_observed_radiance_is_the_slabs_colour(world):
 
 def test_no_shadow_no_occluder(world):
     proxy_tracer, _, radiance, views, quantities, layers = world
-    lit = {s: IntrinsicLayers(s, reflectance=l.reflectance, sun_shading=l.sun_shading, sky_shading=l.sky_shading,
-                              indirect_shading=l.indirect_shading, visibility=np.ones(l.shape, np.float32),
-                              shadow_labels=np.where(l.shadow_labels == 0, 255, l.shadow_labels).astype(np.uint8))
-           for s, l in layers.items()}
+    lit = {s: IntrinsicLayers(s, reflectance=layer.reflectance, sun_shading=layer.sun_shading,
+                              sky_shading=layer.sky_shading, indirect_shading=layer.indirect_shading,
+                              visibility=np.ones(layer.shape, np.float32),
+                              shadow_labels=np.where(layer.shadow_labels == 0, 255, layer.shadow_labels).astype(np.uint8))
+           for s, layer in layers.items()}
     assert len(carve_occluders(views, quantities, lit, radiance, proxy_tracer, SUN)) == 0
 
 

@@ -511,7 +511,7 @@ def test_occluders_bring_the_umbra_and_lsun_toward_the_truth(demo_scene, demo_re
     true_sun = np.asarray(read_ground_truth_lighting(folder).sun_radiance)
     scores = {}
     for name, result in (("default", plain), ("occluders", occluded)):
-        env = {s: l.sky_shading.astype(np.float64) + l.indirect_shading for s, l in result.layers.items()}
+        env = {s: layer.sky_shading.astype(np.float64) + layer.indirect_shading for s, layer in result.layers.items()}
         error = np.abs(env_shading_error(folder, env, region="umbra", umbra=umbra)["median_signed_rel_error"])
         save_decomposition(result, tmp_path / name, scene=demo_scene)
         mean = evaluate(folder, tmp_path / name)["mean"]

@@ -1,7 +1,7 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
-                                       | --proxy-loss | --error-split]
+                                       | --proxy-loss | --error-split | --sky-pixels]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -50,6 +50,9 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
   over the non-sky pixels, without and with the blur (a check of the bound);
 * ``seconds_per_view``: building the relighter (receivers, casters, merged caster and BVH) and
   rendering one sun, per view; ``decompose_seconds``.
+
+``--sky-pixels`` only compares the colours :attr:`~mvintrinsic.relight.RelightConfig.sky_pixels` gives
+the sky pixels, by :func:`sky_psnr` (:func:`sky_pixels_scene`).
 
 ``--stride`` only compares ``RelightConfig.ray_stride`` 2 and 3 with 1 (every pixel): the share of
 the sharp shadow state that changes, the relit PSNR change and the time of the new visibility
@@ -116,6 +119,7 @@ from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import (
     SKY_ADJUSTMENTS,
+    SKY_PIXEL_MODES,
     Caster,
     RelightConfig,
     Relighter,
@@ -162,6 +166,40 @@ def relit_psnr(estimate: np.ndarray, truth: np.ndarray, sky_mask: np.ndarray) ->
     mask = ~np.asarray(sky_mask, dtype=bool) & np.isfinite(truth).all(axis=-1)
     top = float(np.percentile(truth[mask], CLIP_PERCENTILE))
     return psnr(np.clip(estimate, 0.0, top), np.clip(truth, 0.0, top), mask=mask, data_range=top)
+
+
+def sky_psnr(estimate: np.ndarray, truth: np.ndarray, sky_mask: np.ndarray) -> float:
+    """:func:`relit_psnr` over the sky pixels instead (``sky_mask``, the truth's), clipped at the
+    truth's :data:`CLIP_PERCENTILE` percentile there (the sun's disc above it)."""
+    return relit_psnr(estimate, truth, ~np.asarray(sky_mask, dtype=bool))
+
+
+def sky_pixels_scene(folder: Path) -> dict:
+    """``--sky-pixels``: the sky pixels' colour at each relit sun (:attr:`RelightConfig.sky_pixels`).
+
+    The full pipeline's layers relit with each mode of :data:`SKY_PIXEL_MODES` (``"input"``: the
+    input's sky unchanged); per relit tag the mean over views of :func:`sky_psnr` (the truth's sky
+    pixels) and of :func:`relit_psnr` (the other pixels: unchanged, but for pixels the relighter takes
+    for sky that the truth does not), and the share of the truth's sky pixels the relighter recolours.
+    """
+    scene, tags, sky_mask = _relit_scene(folder, "--sky-pixels")
+    tracer = Tracer(scene.proxy)
+    result = decompose(scene, tracer=tracer)
+    out: dict = {}
+    for mode in SKY_PIXEL_MODES:
+        relighter = Relighter(result, scene, config=RelightConfig(sky_pixels=mode), tracer=tracer)
+        entry = out[mode] = {}
+        for tag, (direction, images, _) in tags.items():
+            rendered = relighter.render(direction)
+            entry[tag] = {"sky": float(np.mean([sky_psnr(rendered[s], images[s], sky_mask[s]) for s in scene.stems])),
+                          "non_sky": mean_psnr(rendered, images, sky_mask)["mean"]}
+        if mode != "input":
+            found = [np.isin(np.flatnonzero(sky_mask[s]), relighter._new_sun[s].sky_pixels[0]).mean()
+                     if relighter._new_sun[s].sky_pixels is not None else 0.0 for s in scene.stems]
+            entry["truth_sky_recoloured"] = float(np.mean(found))
+        print(f"{folder.name} sky_pixels={mode}: " + " ".join(
+            f"{t} {v['sky']:.2f}/{v['non_sky']:.2f}" for t, v in entry.items() if isinstance(v, dict)), flush=True)
+    return out
 
 
 def mean_psnr(images: dict, truth: dict, sky: dict) -> dict:
@@ -998,6 +1036,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only rows (c), (d), (e) on proxies simulated with less foliage and thin-structure loss")
     parser.add_argument("--error-split", action="store_true",
                         help="only where row (d)'s squared error is beyond row (c)'s, by true and relit shadow state")
+    parser.add_argument("--sky-pixels", action="store_true",
+                        help="only compare RelightConfig.sky_pixels' modes on the sky pixels (sky_pixels_scene)")
     parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
                         help="with --proxy-loss: only this proxy (repeatable); default all")
     parser.add_argument("--update", action="store_true",
@@ -1020,7 +1060,7 @@ def main(argv: list[str] | None = None) -> int:
     studies = (("timing", "timing", functools.partial(time_scene, size=size)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
-               ("error_split", "error_split", error_split_scene))
+               ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene))
     if args.proxy_variant:
         studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)

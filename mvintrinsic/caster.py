@@ -108,7 +108,7 @@ from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
 from .results import SHADOW_LABELS
 
-__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "merge_casters", "remove_contradicted", "shadow_pixels"]
+__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "merge_casters", "remove_contradicted", "shadow_pixels"]
 
 #: 8-connectivity of the shadow clusters.
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -129,6 +129,8 @@ CASTER_MODES = ("own", "merged")
 FUSION_MODES = ("capture", "all")
 #: How the pixels of dropped shadow clusters are relit (:attr:`RelightConfig.dropped`).
 DROPPED_MODES = ("light", "static", "none")
+#: How the sky pixels change colour, :attr:`RelightConfig.sky_pixels`.
+SKY_PIXEL_MODES = ("paper", "model", "input")
 
 
 @dataclass(frozen=True)
@@ -173,9 +175,12 @@ class RelightConfig:
         (:func:`paper_environment_factors`). ``"model"``: ``S_sky`` scaled per pixel normal by
         the fitted sky model's irradiance at the new sun over the old one
         (:func:`sky_irradiance_ratio`), ``S_ind`` by the change of the sun irradiance on the
-        receivers. Default ``"paper"``, chosen by measurement: on the demo's path-traced relit
-        renders it scores higher in every row of ``benchmarks/bench_relight.py`` (by 0.1 to 0.6
-        dB; module docstring).
+        receivers. Default ``"paper"``: neither wins on every scene (``docs/relight.md``).
+    sky_pixels : {"paper", "model", "input"}
+        How the pixels without an estimate that look at the sky (their ray misses the proxy above
+        the horizon) change colour (:data:`SKY_PIXEL_MODES`, :func:`sky_pixel_factors`): the
+        paper's red shift near the horizon (default: never below ``"input"`` on seven scenes, 0.6
+        to 1.5 dB above it at a higher sun), the fitted sky's radiance ratio, or the input's.
     turbidity : float
         Turbidity of the sky model used by ``sky="model"`` when the decomposition carries no
         fitted sky (``decomposition.lighting.sky is None``, e.g. a ground truth); > 0. 3.5,
@@ -192,9 +197,7 @@ class RelightConfig:
         times the caster's, and their reflectance is the layers' (every view's shadow layer then
         shows the shadow its image shows). ``"none"``: the layers as they are, these pixels
         moved by the caster like every other (their shadow leaves: for layers whose shadow layer
-        is given at every sun, as the benchmark's rows with the true shadows). The paper's by
-        measurement: ``"static"`` raises the cross-view agreement but not the relit PSNR on
-        every scene (module docstring of :mod:`mvintrinsic.relight`).
+        is given at every sun, as the benchmark's rows with the true shadows).
     method : {"multiview", "paper"}
         How the views' evidence is used (:data:`RELIGHT_METHODS`, module docstring, "Votes of
         every view"). ``"paper"``: each view's caster is checked against that view's lit pixels
@@ -260,6 +263,7 @@ class RelightConfig:
     ray_offset: float = 0.02
     normal_smoothing: float = 0.4
     sky: str = "paper"
+    sky_pixels: str = "paper"
     turbidity: float = 3.5
     dropped: str = "light"
     method: str = "multiview"
@@ -271,7 +275,7 @@ class RelightConfig:
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),
-                              ("dropped", DROPPED_MODES)):
+                              ("dropped", DROPPED_MODES), ("sky_pixels", SKY_PIXEL_MODES)):
             value = getattr(self, name)
             if name == "fusion" and value is None:
                 continue

@@ -83,14 +83,14 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
   (26.25 against 26.48), and loses on the pixels lit in both (29.74 against 30.16, 27.38 against
   27.58).
 * **Sky irradiance ratio, not re-integration**: ``"model"`` scales the layers' ``S_sky``, which
-  holds the occlusion Step 1 traced, by the ratio of *unoccluded* sky irradiances: it assumes the
-  occluded share of the sky changes in proportion. Re-integrating with Step 1's hemisphere rays
-  would need Step 1's per-vertex radiance and environment map, which a decomposition does not
-  carry. The scale ``k`` of Eq. (4) cancels; the absolute zenith luminance of Preetham et al.
-  (Appendix A.2), which the relative model leaves to ``k``, does not, and is applied.
-* **Pixels without an estimate** (the layers hold 0: sky, invalid pixels, pixels the
-  decomposition took for sky) show the input image in :meth:`Relighter.render` (``fill``); the
-  paper's recolouring of the sky near the horizon is not done.
+  holds the occlusion Step 1 traced, by the ratio of *unoccluded* sky irradiances (a ratio over
+  each receiver's unoccluded directions moved row (d) by -0.02 to +0.13 dB, ``docs/relight.md``).
+  The scale ``k`` of Eq. (4) cancels; the absolute zenith luminance of Preetham et al. (Appendix
+  A.2), which the relative model leaves to ``k``, does not, and is applied.
+* **Pixels without an estimate** (the layers hold 0: sky, invalid pixels) show the input image in
+  :meth:`Relighter.render` (``fill``); those whose ray misses the proxy above the horizon are sky
+  and change colour (Sec. 8, "we detect sky pixels and change their color near the horizon";
+  :attr:`RelightConfig.sky_pixels`, :func:`~mvintrinsic.relit_shading.sky_pixel_factors`).
 * **On the demo the paper's caster keeps no cluster** (the proxy lost 90% of the foliage and of
   the thin structures; ``docs/relight.md``, "The demo's clusters").
 
@@ -162,6 +162,7 @@ from .caster import (
     DROPPED_MODES,
     RELIGHT_METHODS,
     SKY_ADJUSTMENTS,
+    SKY_PIXEL_MODES,
     Caster,
     RelightConfig,
     _check_sun,
@@ -189,6 +190,7 @@ from .relit_shading import (
     _SphereLookup,
     paper_environment_factors,
     sky_irradiance_ratio,
+    sky_pixel_factors,
 )
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene
@@ -206,32 +208,12 @@ from .shadow_caster import (
     receiver_points,
 )
 
-__all__ = [
-    "NORMAL_GRID_HEIGHT",
-    "RGB_WAVELENGTHS_UM",
-    "CASTER_MODES",
-    "DROPPED_MODES",
-    "RELIGHT_METHODS",
-    "SKY_ADJUSTMENTS",
-    "SKY_GRID_HEIGHT",
-    "SKY_RATIO_FLOOR",
-    "Caster",
-    "RelightConfig",
-    "Relighter",
-    "ShadowCaster",
-    "as_sun_direction",
-    "build_caster",
-    "contradicted_primitives",
-    "merge_casters",
-    "paper_environment_factors",
-    "receiver_depth",
-    "receiver_normals",
-    "receiver_points",
-    "relight",
-    "remove_contradicted",
-    "shadow_pixels",
-    "sky_irradiance_ratio",
-]
+__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS",
+           "SKY_ADJUSTMENTS", "SKY_GRID_HEIGHT", "SKY_PIXEL_MODES", "SKY_RATIO_FLOOR", "Caster",
+           "RelightConfig", "Relighter", "ShadowCaster", "as_sun_direction", "build_caster",
+           "contradicted_primitives", "merge_casters", "paper_environment_factors", "receiver_depth",
+           "receiver_normals", "receiver_points", "relight", "remove_contradicted", "shadow_pixels",
+           "sky_irradiance_ratio", "sky_pixel_factors"]
 
 
 def _check_decomposition(decomposition: object, scene: object) -> tuple[Decomposition, Scene]:
@@ -307,8 +289,9 @@ class _NewSun:
                  fill: np.ndarray, reflectance: np.ndarray, fill_reflectance: np.ndarray, sky_shading: np.ndarray,
                  indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
                  sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
-                 capture: np.ndarray | None = None, static: np.ndarray | None = None) -> None:
-        self.unexplained, self.capture, self.static = unexplained, capture, static
+                 capture: np.ndarray | None = None, static: np.ndarray | None = None,
+                 sky_pixels: tuple | None = None) -> None:
+        self.unexplained, self.capture, self.static, self.sky_pixels = unexplained, capture, static, sky_pixels
         self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
         self.config, self.batch = config, batch
         self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
@@ -338,7 +321,7 @@ class _NewSun:
 
     def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
         """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
-        how, table = environment
+        how, table = environment[:2]
         return table.astype(np.float32) if how == "paper" else self.sky_lookup(table)
 
     def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
@@ -348,8 +331,9 @@ class _NewSun:
         return np.maximum(s_sun, self.floor, out=s_sun)
 
     def image(self, visibility: np.ndarray, sun_shading: np.ndarray, sky: np.ndarray, indirect: float,
-              fill: str) -> np.ndarray:
-        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32; ``sun_shading`` is overwritten."""
+              fill: str, direction: np.ndarray | None = None) -> np.ndarray:
+        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32, the sky pixels of the fill recoloured
+        for the sun ``direction`` (:attr:`RelightConfig.sky_pixels`); ``sun_shading`` is overwritten."""
         image = sun_shading
         image *= visibility[..., None]
         image += self.sky_shading * sky
@@ -357,6 +341,10 @@ class _NewSun:
         if fill == "input":  # the reflectance of the pixels without an estimate is 0 there
             image *= self.fill_reflectance
             image += self.fill
+            if self.sky_pixels is not None and direction is not None:
+                index, rays, capture_sun, turbidity, up = self.sky_pixels
+                image.reshape(-1, 3)[index] *= sky_pixel_factors(rays, capture_sun, direction, turbidity=turbidity,
+                                                                 how=self.config.sky_pixels, up=up)
         else:
             image *= self.reflectance
         return image
@@ -387,7 +375,7 @@ def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, envir
     """A task: one view's relit image from its :func:`_new_sun_terms`."""
     visibility, cosine = terms
     return new_sun.image(visibility, new_sun.sun_shading(cosine), new_sun.sky_factor(environment),
-                         indirect_factor, fill)
+                         indirect_factor, fill, environment[2])
 
 
 def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
@@ -598,11 +586,11 @@ class Relighter:
         timings["fusion"] = time.perf_counter() - start
         # The sun-independent inputs of every new sun, once (module docstring, "Speed").
         start = time.perf_counter()
+        self._turbidity = lighting.sky.turbidity if lighting.sky is not None else config.turbidity
         self._new_sun = {s: self._prepare_new_sun(s, cosine[s], excluded) for s in self.stems}
         timings["new_sun_setup"] = time.perf_counter() - start
         # The sun irradiance of the receivers at capture, the denominator of S_ind's scale.
         self._sun_irradiance = sum(float((cosine[s] * visibility[s])[known[s]].sum()) for s in self.stems)
-        self._turbidity = lighting.sky.turbidity if lighting.sky is not None else config.turbidity
         self._sky_grid: np.ndarray | None = None
         if config.sky == "model":
             self._sky_grid = _sky_irradiance_grid(capture, self._turbidity, up)
@@ -755,6 +743,12 @@ class Relighter:
         unknown = ~self._known[stem][..., None]
         image = self.scene.view(stem).image
         fill = np.where(unknown, np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0).astype(np.float32)
+        sky_pixels = None
+        if config.sky_pixels != "input":  # no estimate, valid, the ray misses the proxy above the horizon
+            rays = self.scene.view(stem).camera.pixel_rays()
+            index = np.flatnonzero(unknown.ravel() & self.scene.view(stem).mask.ravel() & ~self._hits[stem].hit
+                                   & (rays @ self.up > 0))
+            sky_pixels = (index, rays[index], self.sun, self._turbidity, self.up) if len(index) else None
         blocked = self.shadow_casters[stem].completion_blocked(
             self.tracer, excluded if config.method == "multiview" else None)
         return _NewSun(
@@ -770,7 +764,7 @@ class Relighter:
                         if config.sky == "model" else None),
             unexplained=self.unexplained.get(stem), capture=self.visibility[stem],
             static=(self.casters[stem].dropped if config.dropped == "static" and self.casters[stem].dropped.any()
-                    else None))
+                    else None), sky_pixels=sky_pixels)
 
     def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray], float | None]:
         """The environment's change at a new sun: ``(how, table)`` for :meth:`_NewSun.sky_factor`,
@@ -778,8 +772,9 @@ class Relighter:
         :meth:`_indirect_factor`)."""
         if self.config.sky == "paper":
             gain, indirect_factor = paper_environment_factors(self.sun, direction, up=self.up)
-            return ("paper", gain), float(indirect_factor)
-        return ("model", _grid_ratio(_sky_irradiance_grid(direction, self._turbidity, self.up), self._sky_grid)), None
+            return ("paper", gain, direction), float(indirect_factor)
+        grid = _sky_irradiance_grid(direction, self._turbidity, self.up)
+        return ("model", _grid_ratio(grid, self._sky_grid), direction), None
 
     def _indirect_factor(self, irradiance: float) -> float:
         """``sky="model"``: S_ind follows the sun irradiance of the receivers, the mean of
@@ -821,8 +816,7 @@ class Relighter:
         fill : {"input", "zero"}, optional
             What the pixels without an estimate (the layers hold 0 there: the sky, invalid pixels,
             pixels the decomposition took for sky) show: the view's input image (its non-finite
-            values as 0), or 0. The paper recolours the sky near the horizon; that is not done
-            here.
+            values as 0), its sky pixels recoloured (:attr:`RelightConfig.sky_pixels`), or 0.
 
         Returns
         -------
@@ -835,8 +829,9 @@ class Relighter:
             raise ValueError(f"fill must be 'input' or 'zero', got {fill!r}")
         if self._tasks is not None:
             return self._render_on_cluster(sun, visibility, fill)
-        return {s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill)
-                for s, (v_new, s_sun, sky, indirect) in self._relit(sun, visibility).items()}
+        direction = as_sun_direction(sun, up=self.up)
+        return {s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill, direction)
+                for s, (v_new, s_sun, sky, indirect) in self._relit(direction, visibility).items()}
 
     def _render_on_cluster(self, sun: object, visibility: Mapping[str, np.ndarray] | None, fill: str
                            ) -> dict[str, np.ndarray]:

@@ -34,7 +34,8 @@ from .envmap import envmap_directions, horizontal_frame, texel_solid_angles
 from .image_model import LUMINANCE_WEIGHTS
 from .skymodel import preetham_relative_rgb
 
-__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "SKY_GRID_HEIGHT", "SKY_RATIO_FLOOR", "paper_environment_factors", "sky_irradiance_ratio"]
+__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "SKY_GRID_HEIGHT", "SKY_RATIO_FLOOR", "paper_environment_factors", "sky_irradiance_ratio",
+           "sky_pixel_factors"]
 
 # ---------------------------------------------------------------------------------------------
 # environment shading at the new sun
@@ -228,6 +229,54 @@ def paper_environment_factors(old_sun: np.ndarray, new_sun: np.ndarray, *,
     transmittance = np.exp(-_rayleigh_optical_depth(RGB_WAVELENGTHS_UM) * (_air_mass(new_el) - _air_mass(old_el)))
     return transmittance / float(LUMINANCE_WEIGHTS @ transmittance), factor
 
+
+def sky_pixel_factors(directions: np.ndarray, old_sun: np.ndarray, new_sun: np.ndarray, *, how: str,
+                      turbidity: float = 3.5, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.ndarray:
+    """The change of colour of the sky pixels at a new sun (Sec. 8: "we detect sky pixels and change
+    their color near the horizon"; :attr:`~mvintrinsic.caster.RelightConfig.sky_pixels`).
+
+    * ``how="paper"``: our reading (the paper gives no formula): the red shift ``g`` of
+      :func:`paper_environment_factors`, strongest at the horizon and gone at the zenith:
+      ``g ** (1 - sin(alt))``, ``alt`` the altitude of the pixel's direction. 1 for a move in
+      azimuth alone;
+    * ``how="model"``: the fitted Preetham sky's radiance in the pixel's direction at the new sun
+      over that at the old one (Eq. 4 with the absolute zenith luminance, as
+      :func:`sky_irradiance_ratio`).
+
+    Parameters
+    ----------
+    directions : (N, 3) array_like
+        Unit view directions of the sky pixels, world frame (toward the sky).
+    old_sun, new_sun : (3,) array_like
+        Unit vectors toward the capture sun and the new sun, world frame, above the horizon.
+    how : {"paper", "model"}
+    turbidity : float, optional
+        Turbidity of the sky model (``how="model"``).
+    up : (3,) array_like, optional
+        World up vector.
+
+    Returns
+    -------
+    (N, 3) float32
+        Per-channel factors of the pixels' radiance; exactly 1 when ``new_sun == old_sun``.
+    """
+    up = as_unit_vector(up, "up")
+    old, new = _check_sun(old_sun, up), _check_sun(new_sun, up)
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    if how == "paper":
+        gain, _ = paper_environment_factors(old, new, up=up)
+        weight = 1.0 - np.clip(directions @ up, 0.0, 1.0)
+        return (gain[None, :] ** weight[:, None]).astype(np.float32)
+    if how != "model":
+        raise ValueError(f"how must be 'paper' or 'model', got {how!r}")
+    if np.array_equal(old, new):
+        return np.ones((len(directions), 3), np.float32)
+    above = directions - np.minimum(directions @ up, 0.0)[:, None] * up  # below the horizon: the horizon's
+    above /= np.maximum(np.linalg.norm(above, axis=1, keepdims=True), 1e-12)
+    zenith = [_zenith_luminance(turbidity, math.acos(max(-1.0, min(1.0, float(sun @ up))))) for sun in (old, new)]
+    radiance = [np.maximum(preetham_relative_rgb(above, sun_direction=sun, turbidity=turbidity, up=up), 1e-6) * z
+                for sun, z in zip((old, new), zenith, strict=True)]
+    return (radiance[1] / radiance[0]).astype(np.float32)
 
 # ---------------------------------------------------------------------------------------------
 # relighting

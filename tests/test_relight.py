@@ -36,6 +36,7 @@ from mvintrinsic.relight import (
     remove_contradicted,
     shadow_pixels,
     sky_irradiance_ratio,
+    sky_pixel_factors,
 )
 from mvintrinsic.results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from mvintrinsic.scene import Scene, Sun, View
@@ -584,6 +585,9 @@ def test_relight_config_checks_the_new_fields():
         RelightConfig(turbidity=0.0)
     with pytest.raises(ValueError, match="dropped must be one of 'light', 'static', 'none'"):
         RelightConfig(dropped=True)
+    assert RelightConfig().sky_pixels == "paper"
+    with pytest.raises(ValueError, match="sky_pixels must be one of 'paper', 'model', 'input'"):
+        RelightConfig(sky_pixels="hosek")
 
 
 def test_sun_forms_agree_and_invert_azimuth_elevation():
@@ -640,6 +644,69 @@ def test_sky_irradiance_ratio():
     assert (up > 1.0).all()
     # A normal that sees no sky at all keeps its S_sky (ratio 1).
     np.testing.assert_allclose(sky_irradiance_ratio([[0.0, 0.0, -1.0]], capture, sun(0.0, 60.0), turbidity=3.0), 1.0)
+
+
+def test_sky_pixel_factors():
+    rng = np.random.default_rng(2)
+    rays = rng.normal(size=(400, 3))
+    rays[:, 2] = np.abs(rays[:, 2])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    capture = sun(SUN_AZIMUTH, 35.0)
+    for how in ("paper", "model"):
+        same = sky_pixel_factors(rays, capture, capture, how=how, turbidity=3.0)
+        assert same.dtype == np.float32 and same.shape == (400, 3)
+        np.testing.assert_array_equal(same, 1.0)
+    # The paper's reading: a move in azimuth alone changes nothing; a lower sun reddens the sky
+    # toward the horizon by the red shift of paper_environment_factors, and not at the zenith.
+    np.testing.assert_allclose(sky_pixel_factors(rays, capture, sun(SUN_AZIMUTH + 30.0, 35.0), how="paper"), 1.0,
+                               atol=1e-6)
+    lower = sun(SUN_AZIMUTH, 25.0)
+    gain, _ = paper_environment_factors(capture, lower)
+    horizon_zenith = sky_pixel_factors([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]], capture, lower, how="paper")
+    np.testing.assert_allclose(horizon_zenith[0], gain, rtol=1e-6)
+    np.testing.assert_allclose(horizon_zenith[1], 1.0, atol=1e-6)
+    # The model's: the Preetham radiance ratio, finite and positive; the sky near the new sun brightens.
+    model = sky_pixel_factors(rays, capture, sun(SUN_AZIMUTH + 30.0, 35.0), how="model", turbidity=3.0)
+    assert np.isfinite(model).all() and (model > 0).all()
+    near_new = sky_pixel_factors([sun(SUN_AZIMUTH + 30.0, 30.0)], capture, sun(SUN_AZIMUTH + 30.0, 35.0),
+                                 how="model", turbidity=3.0)
+    assert (near_new > 1.0).all()
+    with pytest.raises(ValueError, match="how"):
+        sky_pixel_factors(rays, capture, lower, how="hosek")
+
+
+def test_sky_pixels_change_colour_and_nothing_else():
+    # On the embedded demo (two views, its ground-truth layers): the pixels without an estimate
+    # whose ray misses the proxy above the horizon take the factor of sky_pixel_factors at a new
+    # sun, every other pixel is what sky_pixels="input" gives. They are the sky: measured, all of
+    # the truth's sky pixels in view_000 and 99.7% in view_003, and no other pixel.
+    from mvintrinsic.evaluation import ground_truth_decomposition, read_ground_truth
+    from mvintrinsic.io import demo_scene_path, load_scene
+
+    path = demo_scene_path()
+    stems = ["view_000", "view_003"]
+    demo = load_scene(path, views=stems)
+    decomposition = ground_truth_decomposition(path, views=stems)
+    truth = read_ground_truth(path, views=stems)
+    plain = Relighter(decomposition, demo, config=RelightConfig(sky_pixels="input"))
+    azimuth, elevation = azimuth_elevation(plain.sun, up=demo.up)
+    lower = as_sun_direction((azimuth, elevation - 15.0), up=demo.up)
+    base = plain.render(lower)
+    for how in ("paper", "model"):
+        relighter = Relighter(decomposition, demo, config=RelightConfig(sky_pixels=how))
+        out = relighter.render(lower)
+        for view in demo.views:
+            rays = view.camera.pixel_rays().reshape(*view.shape, 3)
+            sky = ~np.isfinite(plain.tracer.intersect(view.camera.center, view.camera.pixel_rays()).t.reshape(view.shape))
+            sky &= (rays @ demo.up > 0) & view.mask & ~np.any(decomposition.layers[view.stem].reflectance > 0, axis=-1)
+            true_sky = truth[view.stem].sky_mask
+            assert (sky & true_sky).sum() >= 0.99 * true_sky.sum() and (sky & ~true_sky).sum() <= 0.01 * sky.sum()
+            np.testing.assert_array_equal(out[view.stem][~sky], base[view.stem][~sky])
+            factor = sky_pixel_factors(rays[sky], relighter.sun, lower, how=how, up=demo.up,
+                                       turbidity=decomposition.lighting.sky.turbidity
+                                       if decomposition.lighting.sky is not None else RelightConfig().turbidity)
+            np.testing.assert_allclose(out[view.stem][sky], base[view.stem][sky] * factor, rtol=1e-5)
+            assert not np.allclose(out[view.stem][sky], base[view.stem][sky])
 
 
 def test_receiver_normals_are_the_proxy_normals(scene):

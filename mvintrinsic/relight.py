@@ -319,7 +319,7 @@ class _NewSun:
         """``sum max(0, n . d') v'`` over the pixels with an estimate (``sky="model"``'s ``S_ind``)."""
         return float((cosine.astype(np.float64) * visibility)[self.known].sum())
 
-    def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
+    def sky_factor(self, environment: tuple[str, np.ndarray, np.ndarray]) -> np.ndarray:
         """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
         how, table = environment[:2]
         return table.astype(np.float32) if how == "paper" else self.sky_lookup(table)
@@ -370,7 +370,7 @@ def _irradiance_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray]) -> 
     return new_sun.irradiance(cosine, visibility)
 
 
-def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple[str, np.ndarray],
+def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple,
                 indirect_factor: float, fill: str) -> np.ndarray:
     """A task: one view's relit image from its :func:`_new_sun_terms`."""
     visibility, cosine = terms
@@ -379,7 +379,7 @@ def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, envir
 
 
 def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
-                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple[str, np.ndarray],
+                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple,
                  indirect_factor: float, fill: str) -> np.ndarray:
     """A task: one view's relit image at a new sun (``sky="paper"``: no cross-view term)."""
     terms = _new_sun_terms(new_sun, caster, tracer, direction, shadow_sun, visibility)
@@ -766,8 +766,9 @@ class Relighter:
             static=(self.casters[stem].dropped if config.dropped == "static" and self.casters[stem].dropped.any()
                     else None), sky_pixels=sky_pixels)
 
-    def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray], float | None]:
-        """The environment's change at a new sun: ``(how, table)`` for :meth:`_NewSun.sky_factor`,
+    def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray, np.ndarray], float | None]:
+        """The environment's change at a new sun: ``(how, table, direction)`` for :meth:`_NewSun.sky_factor`
+        and the sky pixels (:meth:`_NewSun.image`),
         and the factor of ``S_ind`` (None with ``sky="model"``: it needs every view's ``v'``,
         :meth:`_indirect_factor`)."""
         if self.config.sky == "paper":

@@ -194,7 +194,7 @@ def sky_pixels_scene(folder: Path) -> dict:
             entry[tag] = {"sky": float(np.mean([sky_psnr(rendered[s], images[s], sky_mask[s]) for s in scene.stems])),
                           "non_sky": mean_psnr(rendered, images, sky_mask)["mean"]}
         if mode != "input":
-            found = [np.isin(np.flatnonzero(sky_mask[s]), relighter._new_sun[s].sky_pixels[0]).mean()
+            found = [np.isin(np.flatnonzero(sky_mask[s]), relighter._new_sun[s].sky_pixels.index).mean()
                      if relighter._new_sun[s].sky_pixels is not None else 0.0 for s in scene.stems]
             entry["truth_sky_recoloured"] = float(np.mean(found))
         print(f"{folder.name} sky_pixels={mode}: " + " ".join(

@@ -187,6 +187,7 @@ from .relit_shading import (
     SKY_RATIO_FLOOR,
     _grid_ratio,
     _sky_irradiance_grid,
+    _SkyPixels,
     _SphereLookup,
     paper_environment_factors,
     sky_irradiance_ratio,
@@ -290,7 +291,7 @@ class _NewSun:
                  indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
                  sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
                  capture: np.ndarray | None = None, static: np.ndarray | None = None,
-                 sky_pixels: tuple | None = None) -> None:
+                 sky_pixels: _SkyPixels | None = None) -> None:
         self.unexplained, self.capture, self.static, self.sky_pixels = unexplained, capture, static, sky_pixels
         self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
         self.config, self.batch = config, batch
@@ -319,9 +320,9 @@ class _NewSun:
         """``sum max(0, n . d') v'`` over the pixels with an estimate (``sky="model"``'s ``S_ind``)."""
         return float((cosine.astype(np.float64) * visibility)[self.known].sum())
 
-    def sky_factor(self, environment: tuple[str, np.ndarray, np.ndarray]) -> np.ndarray:
+    def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
         """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
-        how, table = environment[:2]
+        how, table = environment
         return table.astype(np.float32) if how == "paper" else self.sky_lookup(table)
 
     def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
@@ -342,9 +343,7 @@ class _NewSun:
             image *= self.fill_reflectance
             image += self.fill
             if self.sky_pixels is not None and direction is not None:
-                index, rays, capture_sun, turbidity, up = self.sky_pixels
-                image.reshape(-1, 3)[index] *= sky_pixel_factors(rays, capture_sun, direction, turbidity=turbidity,
-                                                                 how=self.config.sky_pixels, up=up)
+                self.sky_pixels.recolour(image, direction)
         else:
             image *= self.reflectance
         return image
@@ -370,20 +369,21 @@ def _irradiance_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray]) -> 
     return new_sun.irradiance(cosine, visibility)
 
 
-def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple,
-                indirect_factor: float, fill: str) -> np.ndarray:
+def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple[str, np.ndarray],
+                indirect_factor: float, fill: str, direction: np.ndarray) -> np.ndarray:
     """A task: one view's relit image from its :func:`_new_sun_terms`."""
     visibility, cosine = terms
     return new_sun.image(visibility, new_sun.sun_shading(cosine), new_sun.sky_factor(environment),
-                         indirect_factor, fill, environment[2])
+                         indirect_factor, fill, direction)
 
 
 def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
-                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple,
+                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple[str, np.ndarray],
                  indirect_factor: float, fill: str) -> np.ndarray:
     """A task: one view's relit image at a new sun (``sky="paper"``: no cross-view term)."""
     terms = _new_sun_terms(new_sun, caster, tracer, direction, shadow_sun, visibility)
-    return _image_task(new_sun, terms, environment=environment, indirect_factor=indirect_factor, fill=fill)
+    return _image_task(new_sun, terms, environment=environment, indirect_factor=indirect_factor, fill=fill,
+                       direction=direction)
 
 
 class Relighter:
@@ -748,7 +748,8 @@ class Relighter:
             rays = self.scene.view(stem).camera.pixel_rays()
             index = np.flatnonzero(unknown.ravel() & self.scene.view(stem).mask.ravel() & ~self._hits[stem].hit
                                    & (rays @ self.up > 0))
-            sky_pixels = (index, rays[index], self.sun, self._turbidity, self.up) if len(index) else None
+            sky_pixels = (_SkyPixels(index, rays[index], self.sun, how=config.sky_pixels, turbidity=self._turbidity,
+                                     up=self.up) if len(index) else None)
         blocked = self.shadow_casters[stem].completion_blocked(
             self.tracer, excluded if config.method == "multiview" else None)
         return _NewSun(
@@ -766,16 +767,14 @@ class Relighter:
             static=(self.casters[stem].dropped if config.dropped == "static" and self.casters[stem].dropped.any()
                     else None), sky_pixels=sky_pixels)
 
-    def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray, np.ndarray], float | None]:
-        """The environment's change at a new sun: ``(how, table, direction)`` for :meth:`_NewSun.sky_factor`
-        and the sky pixels (:meth:`_NewSun.image`),
+    def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray], float | None]:
+        """The environment's change at a new sun: ``(how, table)`` for :meth:`_NewSun.sky_factor`,
         and the factor of ``S_ind`` (None with ``sky="model"``: it needs every view's ``v'``,
         :meth:`_indirect_factor`)."""
         if self.config.sky == "paper":
             gain, indirect_factor = paper_environment_factors(self.sun, direction, up=self.up)
-            return ("paper", gain, direction), float(indirect_factor)
-        grid = _sky_irradiance_grid(direction, self._turbidity, self.up)
-        return ("model", _grid_ratio(grid, self._sky_grid), direction), None
+            return ("paper", gain), float(indirect_factor)
+        return ("model", _grid_ratio(_sky_irradiance_grid(direction, self._turbidity, self.up), self._sky_grid)), None
 
     def _indirect_factor(self, irradiance: float) -> float:
         """``sky="model"``: S_ind follows the sun irradiance of the receivers, the mean of
@@ -857,7 +856,8 @@ class Relighter:
                                                    {s: (remote["new_sun"][s], terms[s]) for s in self.stems}))
             indirect_factor = self._indirect_factor(sum(irradiance[s] for s in self.stems))
             futures = tasks.submit("relight", _image_task, {s: (remote["new_sun"][s], terms[s]) for s in self.stems},
-                                   environment=environment, indirect_factor=indirect_factor, fill=fill)
+                                   environment=environment, indirect_factor=indirect_factor, fill=fill,
+                                   direction=direction)
         return tasks.gather(futures)
 
     def __repr__(self) -> str:

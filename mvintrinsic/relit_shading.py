@@ -260,23 +260,46 @@ def sky_pixel_factors(directions: np.ndarray, old_sun: np.ndarray, new_sun: np.n
     (N, 3) float32
         Per-channel factors of the pixels' radiance; exactly 1 when ``new_sun == old_sun``.
     """
-    up = as_unit_vector(up, "up")
-    old, new = _check_sun(old_sun, up), _check_sun(new_sun, up)
-    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
-    if how == "paper":
-        gain, _ = paper_environment_factors(old, new, up=up)
-        weight = 1.0 - np.clip(directions @ up, 0.0, 1.0)
-        return (gain[None, :] ** weight[:, None]).astype(np.float32)
-    if how != "model":
-        raise ValueError(f"how must be 'paper' or 'model', got {how!r}")
-    if np.array_equal(old, new):
-        return np.ones((len(directions), 3), np.float32)
-    above = directions - np.minimum(directions @ up, 0.0)[:, None] * up  # below the horizon: the horizon's
-    above /= np.maximum(np.linalg.norm(above, axis=1, keepdims=True), 1e-12)
-    zenith = [_zenith_luminance(turbidity, math.acos(max(-1.0, min(1.0, float(sun @ up))))) for sun in (old, new)]
-    radiance = [np.maximum(preetham_relative_rgb(above, sun_direction=sun, turbidity=turbidity, up=up), 1e-6) * z
-                for sun, z in zip((old, new), zenith, strict=True)]
-    return (radiance[1] / radiance[0]).astype(np.float32)
+    return _SkyPixels(None, directions, old_sun, how=how, turbidity=turbidity, up=up).factors(new_sun)
+
+
+class _SkyPixels:
+    """The sky pixels of one view (flat ``index``, view ``directions``) and what of
+    :func:`sky_pixel_factors` does not depend on the new sun, computed once."""
+
+    def __init__(self, index: np.ndarray | None, directions: np.ndarray, old_sun: np.ndarray, *, how: str,
+                 turbidity: float, up: np.ndarray) -> None:
+        if how not in ("paper", "model"):
+            raise ValueError(f"how must be 'paper' or 'model', got {how!r}")
+        self.up = as_unit_vector(up, "up")
+        self.old, self.index, self.how, self.turbidity = _check_sun(old_sun, self.up), index, how, turbidity
+        directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        if how == "paper":
+            self.weight = 1.0 - np.clip(directions @ self.up, 0.0, 1.0)
+        else:  # below the horizon: the horizon's colour
+            above = directions - np.minimum(directions @ self.up, 0.0)[:, None] * self.up
+            self.directions = above / np.maximum(np.linalg.norm(above, axis=1, keepdims=True), 1e-12)
+            self.radiance = self._radiance(self.old)
+
+    def _radiance(self, sun: np.ndarray) -> np.ndarray:
+        zenith = _zenith_luminance(self.turbidity, math.acos(max(-1.0, min(1.0, float(sun @ self.up)))))
+        relative = preetham_relative_rgb(self.directions, sun_direction=sun, turbidity=self.turbidity, up=self.up)
+        return np.maximum(relative, 1e-6) * zenith
+
+    def factors(self, new_sun: np.ndarray) -> np.ndarray:
+        """(N, 3) float32 factors at ``new_sun`` (:func:`sky_pixel_factors`)."""
+        new = _check_sun(new_sun, self.up)
+        if self.how == "paper":
+            gain, _ = paper_environment_factors(self.old, new, up=self.up)
+            return (gain[None, :] ** self.weight[:, None]).astype(np.float32)
+        if np.array_equal(self.old, new):
+            return np.ones((len(self.directions), 3), np.float32)
+        return (self._radiance(new) / self.radiance).astype(np.float32)
+
+    def recolour(self, image: np.ndarray, new_sun: np.ndarray) -> None:
+        """Multiply the sky pixels of ``image`` ((H, W, 3) float32, in place) by their factors."""
+        image.reshape(-1, 3)[self.index] *= self.factors(new_sun)
+
 
 # ---------------------------------------------------------------------------------------------
 # relighting

@@ -839,7 +839,8 @@ def receivers_scene(folder: Path) -> dict:
 
 
 #: The proxies of ``--proxy-loss`` (:func:`proxy_loss_scene`), from the scene's own to the exact mesh.
-PROXY_VARIANTS = ("loss 0.9", "loss 0.0", "fused exact depth", "exact seen by 2+", "exact seen by 1+", "exact")
+PROXY_VARIANTS = ("loss 0.9", "loss 0.0", "fused exact depth", "exact seen by 2+", "exact seen by 1+", "exact",
+                  "stereo")
 
 
 def _seen_part(proxy, views, min_views: int):
@@ -871,7 +872,9 @@ def proxy_variant(folder: Path, scene, name: str):
       views per voxel) keeps of the exact depth maps;
     * ``exact``: the exact mesh (``proxy_clean.ply`` subdivided as the Step-1 benchmarks do,
       ``bench_step1_accuracy.clean_proxy``); ``exact seen by K+``: its triangles that the pixel-centre rays of
-      at least ``K`` views hit first (what the photographs show, at the precision of the mesh).
+      at least ``K`` views hit first (what the photographs show, at the precision of the mesh);
+    * ``stereo``: the scene's own proxy completed by PatchMatch stereo from the photographs
+      (:func:`mvintrinsic.stereo.complete_proxy`, its defaults): no ground truth involved.
     """
     from bench_step1_accuracy import clean_proxy
 
@@ -879,6 +882,10 @@ def proxy_variant(folder: Path, scene, name: str):
 
     settings = json.loads((folder / "gt" / "scene_info.json").read_text())["config"]
     own = ProxyConfig(**settings["proxy"])
+    if name == "stereo":
+        from mvintrinsic.stereo import complete_proxy
+
+        return complete_proxy(scene, progress=print)[0]
     if name.startswith("exact"):
         exact = clean_proxy(folder, scene)
         return exact if name == "exact" else _seen_part(exact, scene.views, int(name.split()[-1].rstrip("+")))
@@ -899,7 +906,7 @@ def proxy_variant(folder: Path, scene, name: str):
 
 
 #: The proxies on which ``--proxy-loss`` also runs the full pipeline (row (e)): the scene's own and the exact mesh.
-PIPELINE_VARIANTS = ("loss 0.9", "exact")
+PIPELINE_VARIANTS = ("loss 0.9", "exact", "stereo")
 
 
 def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
@@ -909,7 +916,8 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
     For every proxy of ``variants`` (:func:`proxy_variant`): (c) ``gt_mesh`` (the exact mesh's
     shadow; the proxy only gives the normals of the cosine, as in row (d)), (d) ``gt_caster``
     (the relighter's defaults) and, for the proxies named in ``pipeline``, (e) the full pipeline
-    decomposed on that proxy; and the share of the true foliage and thin surface seen in the photos that the proxy
+    decomposed on that proxy (for ``stereo`` also ``pipeline_own_layers``: the layers decomposed on the
+    scene's own proxy, relit with the completed one); and the share of the true foliage and thin surface seen in the photos that the proxy
     retains within 10 cm (:func:`mvintrinsic.synth.proxy.label_retention`).
     """
     from mvintrinsic.synth.proxy import label_retention
@@ -923,6 +931,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
     mesh = MeshShadow(folder, scene)
     config = RelightConfig()
     out = {}
+    own_result = None  # the decomposition on the scene's own proxy, for the "stereo" variant's relight-only row
     for name in variants:
         proxy = proxy_variant(folder, scene, name)
         moved = dataclasses.replace(scene, proxy=proxy)
@@ -939,6 +948,13 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
             result = decompose(moved, tracer=tracer)
             entry["decompose_seconds"] = time.perf_counter() - start
             pipeline_relighter = Relighter(result, moved, config=config, tracer=tracer)
+            if proxy is scene.proxy:
+                own_result = result
+        own_layers_relighter = None
+        if name == "stereo":  # the layers decomposed on the scene's own proxy, relit with the completed one
+            if own_result is None:
+                own_result = decompose(scene)
+            own_layers_relighter = Relighter(own_result, moved, config=config, tracer=tracer)
         for tag, (direction, images, _) in tags.items():
             sun = np.asarray(direction, dtype=np.float64)
             rows = {"input": inputs,
@@ -946,6 +962,8 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
                     "gt_caster": ours.render(sun)}
             if pipeline_relighter is not None:
                 rows["pipeline"] = pipeline_relighter.render(sun)
+            if own_layers_relighter is not None:
+                rows["pipeline_own_layers"] = own_layers_relighter.render(sun)
             entry["psnr"][tag] = {row: mean_psnr(image, images, sky_mask)["mean"] for row, image in rows.items()}
             print(f"{folder.name} {name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in entry["psnr"][tag].items()),
                   flush=True)

@@ -293,6 +293,41 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_complete_proxy(args: argparse.Namespace) -> int:
+    import shutil
+    import tempfile
+
+    from .io import write_proxy
+    from .stereo import StereoConfig, complete_proxy
+
+    source, out = args.scene.resolve(), args.out.resolve()
+    if out == source or source in out.parents:
+        raise ValueError(f"out: {args.out} must lie outside the scene folder {args.scene} (the scene is never written)")
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not args.overwrite)):
+        raise FileExistsError(f"out: {args.out} exists and is not empty (--overwrite replaces it)")
+    scene = load_scene(args.scene, max_size=args.max_size, progress=not args.quiet)
+    config = StereoConfig(max_width=args.max_width)
+    proxy, _ = complete_proxy(scene, config=config, progress=None if args.quiet else print)
+    # The new scene folder is written beside OUT and renamed onto it: a failure leaves OUT as it was.
+    out.parent.mkdir(parents=True, exist_ok=True)
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        for item in source.iterdir():
+            if item.name == "proxy.ply" or item.name.startswith("."):
+                continue
+            (shutil.copytree if item.is_dir() else shutil.copy2)(item, staging / item.name)
+        write_proxy(staging / "proxy.ply", proxy)
+        if out.exists():
+            shutil.rmtree(out)
+        staging.rename(out)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
+    added = len(proxy.triangles) - len(scene.proxy.triangles)
+    print(f"wrote {args.out}: the scene with its proxy completed ({added} triangles added to {len(scene.proxy.triangles)})")
+    return 0
+
+
 def _cmd_relight(args: argparse.Namespace) -> int:
     from .io import check_result_folder, load_decomposition, write_image
     from .preview import tonemap
@@ -529,6 +564,17 @@ def build_parser() -> argparse.ArgumentParser:
     synth.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     synth.set_defaults(run=_cmd_synth)
+
+    comp = commands.add_parser("complete-proxy",
+                               help="copy a scene folder with its proxy completed by PatchMatch stereo (beyond the paper)")
+    comp.add_argument("scene", type=Path, help="scene folder (images/, sparse/, proxy.ply, scene.json); not written")
+    comp.add_argument("out", type=Path, help="new scene folder: the scene's files and the completed proxy.ply")
+    comp.add_argument("--max-size", type=_max_size, default=DEFAULT_MAX_SIZE, help=MAX_SIZE_HELP)
+    comp.add_argument("--max-width", type=int, default=640,
+                      help="views wider than this are matched at this width (default 640; StereoConfig.max_width)")
+    comp.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
+    comp.add_argument("--quiet", action="store_true", help="no progress")
+    comp.set_defaults(run=_cmd_complete_proxy)
 
     rel = commands.add_parser("relight", help="relight a decomposed scene under a new sun (paper Sec. 8)")
     rel.add_argument("scene", type=Path, help="scene folder the result was decomposed from")

@@ -173,3 +173,33 @@ def test_cli_complete_proxy_writes_a_new_scene_and_leaves_the_input(tmp_path, ca
     assert main(["complete-proxy", str(scene_dir), str(scene_dir / "inner"), "--quiet"]) == 2
     assert "out:" in capsys.readouterr().err and not (scene_dir / "inner").exists()
     assert digest(scene_dir) == before
+
+
+def test_distorted_views_are_matched_on_their_pinhole_twins():
+    from mvintrinsic.stereo import _pinhole
+
+    rotation, translation = look_at(np.array([0.0, -6.0, 2.0]), np.array([0.0, 0.0, 0.5]))
+    camera = Camera("OPENCV", W, H, [0.9 * W, 0.9 * W, W / 2, H / 2, -0.25, 0.05, 0.001, -0.001], rotation, translation)
+    yy, xx = np.mgrid[0:H, 0:W]
+    lum = (0.3 + 0.1 * np.sin(xx / 4.0) + 0.1 * np.cos(yy / 3.0)).astype(np.float32)
+    view = View("v", np.repeat(lum[..., None], 3, axis=2), camera)
+    twin, grey = _pinhole(view, 640)
+    assert twin.model == "PINHOLE" and not twin.is_distorted and grey.shape == (H, W)
+    np.testing.assert_allclose(twin.K, camera.K)
+    # A world point lands where each camera says: the twin's grey there is the view's (the same
+    # normalisation: square root of luminance over its 99th percentile).
+    rng = np.random.default_rng(0)
+    points = np.column_stack([rng.uniform(-1.5, 1.5, 200), rng.uniform(-0.5, 0.5, 200), rng.uniform(0.0, 1.5, 200)])
+    (u0, v0), (u1, v1) = (c.project(points)[0].T for c in (camera, twin))
+    inside = (u0 > 2) & (u0 < W - 3) & (v0 > 2) & (v0 < H - 3) & (u1 > 2) & (u1 < W - 3) & (v1 > 2) & (v1 < H - 3)
+    source = np.sqrt(lum) / np.percentile(np.sqrt(lum), 99)
+    import cv2
+
+    def sample(image, u, v):
+        return cv2.remap(image.astype(np.float32), (u - 0.5).astype(np.float32)[None], (v - 0.5).astype(np.float32)[None],
+                         cv2.INTER_LINEAR)[0]
+
+    assert inside.sum() > 100
+    # Measured: within 0.007 everywhere; the view's own grey, not resampled, misses by up to 0.027
+    # (15% of the points beyond 0.01).
+    np.testing.assert_allclose(sample(grey, u1[inside], v1[inside]), sample(source, u0[inside], v0[inside]), atol=0.01)

@@ -880,12 +880,12 @@ def proxy_variant(folder: Path, scene, name: str):
 
     from mvintrinsic.synth.proxy import ProxyConfig, simulate_mvs_proxy
 
-    settings = json.loads((folder / "gt" / "scene_info.json").read_text())["config"]
-    own = ProxyConfig(**settings["proxy"])
-    if name == "stereo":
+    if name == "stereo":  # from the photographs alone
         from mvintrinsic.stereo import complete_proxy
 
         return complete_proxy(scene, progress=print)[0]
+    settings = json.loads((folder / "gt" / "scene_info.json").read_text())["config"]
+    own = ProxyConfig(**settings["proxy"])
     if name.startswith("exact"):
         exact = clean_proxy(folder, scene)
         return exact if name == "exact" else _seen_part(exact, scene.views, int(name.split()[-1].rstrip("+")))

@@ -294,10 +294,12 @@ def _cmd_decompose(args: argparse.Namespace) -> int:
 
 
 def _cmd_complete_proxy(args: argparse.Namespace) -> int:
+    import os
     import shutil
     import tempfile
 
     from .io import write_proxy
+    from .result_folder import _PARTIAL, _swap_in
     from .stereo import StereoConfig, complete_proxy
 
     source, out = args.scene.resolve(), args.out.resolve()
@@ -308,18 +310,16 @@ def _cmd_complete_proxy(args: argparse.Namespace) -> int:
     scene = load_scene(args.scene, max_size=args.max_size, progress=not args.quiet)
     config = StereoConfig(max_width=args.max_width)
     proxy, _ = complete_proxy(scene, config=config, progress=None if args.quiet else print)
-    # The new scene folder is written beside OUT and renamed onto it: a failure leaves OUT as it was.
+    # The new scene folder is written beside OUT and swapped in whole (result_folder._swap_in): a
+    # failure at any instant leaves OUT as it was.
     out.parent.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    staging = Path(tempfile.mkdtemp(prefix=f".{out.name}.{_PARTIAL}-{os.getpid()}-", dir=out.parent))
     try:
         for item in source.iterdir():
-            if item.name == "proxy.ply" or item.name.startswith("."):
-                continue
-            (shutil.copytree if item.is_dir() else shutil.copy2)(item, staging / item.name)
+            if item.name != "proxy.ply" and not item.name.startswith("."):
+                (shutil.copytree if item.is_dir() else shutil.copy2)(item, staging / item.name)
         write_proxy(staging / "proxy.ply", proxy)
-        if out.exists():
-            shutil.rmtree(out)
-        staging.rename(out)
+        _swap_in(staging, out)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise

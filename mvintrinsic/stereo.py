@@ -48,7 +48,7 @@ import numpy as np
 
 from ._validation import describe
 from .camera import Camera
-from .raytrace import Tracer
+from .raytrace import Tracer, depth_map
 from .scene import Proxy, Scene, View
 
 __all__ = ["DepthMap", "StereoConfig", "complete_proxy", "depth_surface", "patchmatch", "source_views"]
@@ -405,12 +405,10 @@ def _agreeing(maps: Sequence[DepthMap], index: int, tolerance: float) -> np.ndar
     for k in own.sources:
         other = maps[k]
         cam = other.camera
-        z = cam.world_to_camera(points)[:, 2]
+        uv, z = cam.project(points)
+        u, v = np.floor(uv[:, 0]), np.floor(uv[:, 1])
         with np.errstate(invalid="ignore"):
-            uv = points @ (cam.K @ cam.rotation).T + cam.K @ cam.translation
-            u = np.floor(uv[:, 0] / uv[:, 2])
-            v = np.floor(uv[:, 1] / uv[:, 2])
-            inside = np.isfinite(u) & np.isfinite(v) & (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+            inside = (z > 0) & cam.in_image(uv)
         seen = np.full(h * w, np.nan)
         seen[inside] = other.depth[v[inside].astype(int), u[inside].astype(int)]
         with np.errstate(invalid="ignore"):
@@ -513,10 +511,8 @@ def complete_proxy(scene: Scene, *, config: StereoConfig = StereoConfig(), trace
         raise ValueError(f"scene: {len(scene.views)} views, need at least best_views + 1 = {config.best_views + 1}")
     tracer = Tracer(scene.proxy) if tracer is None else tracer
     cameras, greys = zip(*(_pinhole(view, config.max_width) for view in scene.views), strict=True)
-    proxy_depth = []
-    for cam in cameras:
-        rays = cam.pixel_rays()
-        proxy_depth.append((tracer.intersect(cam.center, rays).t * (rays @ cam.forward)).reshape(cam.shape))
+    # The proxy's depth along each optical axis (camera z), inf where it has none.
+    proxy_depth = [depth_map(cam, tracer) * (cam.pixel_rays() @ cam.forward).reshape(cam.shape) for cam in cameras]
     maps = []
     for k in range(len(cameras)):
         start = time.perf_counter()

@@ -840,7 +840,7 @@ def receivers_scene(folder: Path) -> dict:
 
 #: The proxies of ``--proxy-loss`` (:func:`proxy_loss_scene`), from the scene's own to the exact mesh.
 PROXY_VARIANTS = ("loss 0.9", "loss 0.0", "fused exact depth", "exact seen by 2+", "exact seen by 1+", "exact",
-                  "stereo")
+                  "stereo", "stereo, no colour test")
 
 
 def _seen_part(proxy, views, min_views: int):
@@ -874,16 +874,19 @@ def proxy_variant(folder: Path, scene, name: str):
       ``bench_step1_accuracy.clean_proxy``); ``exact seen by K+``: its triangles that the pixel-centre rays of
       at least ``K`` views hit first (what the photographs show, at the precision of the mesh);
     * ``stereo``: the scene's own proxy completed by PatchMatch stereo from the photographs
-      (:func:`mvintrinsic.stereo.complete_proxy`, its defaults): no ground truth involved.
+      (:func:`mvintrinsic.stereo.complete_proxy`, its defaults): no ground truth involved;
+      ``stereo, no colour test``: the same with ``StereoConfig(colour_tolerance=None)`` (the
+      default before the colour test; ``benchmarks/results/relight_stereo.json``'s ``stereo``).
     """
     from bench_step1_accuracy import clean_proxy
 
     from mvintrinsic.synth.proxy import ProxyConfig, simulate_mvs_proxy
 
-    if name == "stereo":  # from the photographs alone
-        from mvintrinsic.stereo import complete_proxy
+    if name.startswith("stereo"):  # from the photographs alone
+        from mvintrinsic.stereo import StereoConfig, complete_proxy
 
-        return complete_proxy(scene, progress=print)[0]
+        config = StereoConfig(colour_tolerance=None) if name == "stereo, no colour test" else StereoConfig()
+        return complete_proxy(scene, config=config, progress=print)[0]
     settings = json.loads((folder / "gt" / "scene_info.json").read_text())["config"]
     own = ProxyConfig(**settings["proxy"])
     if name.startswith("exact"):
@@ -906,7 +909,7 @@ def proxy_variant(folder: Path, scene, name: str):
 
 
 #: The proxies on which ``--proxy-loss`` also runs the full pipeline (row (e)): the scene's own and the exact mesh.
-PIPELINE_VARIANTS = ("loss 0.9", "exact", "stereo")
+PIPELINE_VARIANTS = ("loss 0.9", "exact", "stereo", "stereo, no colour test")
 
 
 def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
@@ -951,7 +954,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
             if proxy is scene.proxy:
                 own_result = result
         own_layers_relighter = None
-        if name == "stereo":  # the layers decomposed on the scene's own proxy, relit with the completed one
+        if name.startswith("stereo"):  # the layers decomposed on the scene's own proxy, relit with the completed one
             if own_result is None:
                 own_result = decompose(scene)
             own_layers_relighter = Relighter(own_result, moved, config=config, tracer=tracer)

@@ -131,6 +131,19 @@ MAX_SIZE_HELP = (f"downscale larger photos to this longer side in pixels (defaul
                  "photo then decomposes within 4 GB); 'full' for full resolution")
 
 
+def _tolerance_or_none(text: str) -> float | None:
+    """A positive number, or ``none``."""
+    if text.strip().lower() == "none":
+        return None
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a positive number or 'none', got {text!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a positive number or 'none', got {text!r}")
+    return value
+
+
 def _max_size(text: str) -> int | None:
     """``--max-size``: an integer (checked by load_scene, which names max_size) or 'full'."""
     if text.strip().lower() == "full":
@@ -308,7 +321,8 @@ def _cmd_complete_proxy(args: argparse.Namespace) -> int:
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not args.overwrite)):
         raise FileExistsError(f"out: {args.out} exists and is not empty (--overwrite replaces it)")
     scene = load_scene(args.scene, max_size=args.max_size, progress=not args.quiet)
-    config = StereoConfig(max_width=args.max_width)
+    chosen = {"colour_tolerance": args.colour_tolerance} if hasattr(args, "colour_tolerance") else {}
+    config = StereoConfig(max_width=args.max_width, **chosen)
     proxy, _ = complete_proxy(scene, config=config, progress=None if args.quiet else print)
     # The new scene folder is written beside OUT and swapped in whole (result_folder._swap_in): a
     # failure at any instant leaves OUT as it was.
@@ -572,6 +586,9 @@ def build_parser() -> argparse.ArgumentParser:
     comp.add_argument("--max-size", type=_max_size, default=DEFAULT_MAX_SIZE, help=MAX_SIZE_HELP)
     comp.add_argument("--max-width", type=int, default=640,
                       help="views wider than this are matched at this width (default 640; StereoConfig.max_width)")
+    comp.add_argument("--colour-tolerance", type=_tolerance_or_none, default=argparse.SUPPRESS,
+                      help="a completed pixel's colour must be seen by another view within this log radiance, "
+                           "or 'none' (default 0.15; StereoConfig.colour_tolerance)")
     comp.add_argument("--overwrite", action="store_true", help="replace a non-empty OUT")
     comp.add_argument("--quiet", action="store_true", help="no progress")
     comp.set_defaults(run=_cmd_complete_proxy)

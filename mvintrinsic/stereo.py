@@ -18,7 +18,11 @@ photographs alone:
 2. **Kept pixels**: the cost is at most ``max_cost``, the window is textured, at least
    ``agreeing_views`` source views' depth maps hold the same point (within ``depth_tolerance``),
    the depth lies more than ``in_front`` in front of the proxy's (or the proxy has none there),
-   and the kept region has at least ``min_region`` pixels.
+   one source view sees the pixel's colour at its point within ``colour_tolerance`` in log
+   radiance (NCC ignores gain and offset, so a window straddling a picket fence and the wall
+   behind it can match at a depth neither lies at; its colours do not), and the kept region has
+   at least ``min_region`` pixels. :func:`proxy_from_depths` is this step alone, to select again
+   from the same depth maps.
 3. **Surfaces**: the kept pixels of every view triangulated in image space (neighbours within 3%
    in depth) and appended to the proxy.
 
@@ -27,11 +31,11 @@ pixels were where the proxy had lost geometry, but 13% of them lay more than 10%
 truth (foreground fattening), and row (d) moved by -0.31 to +0.28 dB.
 
 Measured on five 480x360 scenes (``docs/relight.md``, "The proxy completed by PatchMatch stereo";
-``benchmarks/results/relight_stereo.json``): at +-15 degrees row (d) rises by 0.43 dB on average
-(-0.07 to +0.92), the gap to the exact mesh's shadows falls from 3.91 to 3.38 dB, and the full
-pipeline decomposed and relit on the completed proxy gains +0.37 to +1.01 dB on the streets but
-loses 0.7 dB on courtyard_s1; so the completion is an option, not a default stage. About 30 s per
-480x360 view on 2 cores.
+``benchmarks/results/relight_stereo.json`` without the colour test, ``stereo_colour.json`` with it):
+at +-15 degrees row (d) rises by 0.35 dB on average (-0.08 to +0.84), and the full pipeline
+decomposed and relit on the completed proxy gains +0.42 to +0.74 dB on the streets but loses up
+to 0.33 dB on courtyard_s1 (0.74 without the colour test); so the completion is an option, not a
+default stage. About 30 s per 480x360 view on 2 cores.
 
 The images are resampled to their cameras' distortion-free pinhole twins and to at most
 ``max_width`` pixels across before matching (depth maps for casters need not be finer). No I/O.
@@ -51,7 +55,7 @@ from .camera import Camera
 from .raytrace import Tracer, depth_map
 from .scene import Proxy, Scene, View
 
-__all__ = ["DepthMap", "StereoConfig", "complete_proxy", "depth_surface", "patchmatch", "source_views"]
+__all__ = ["DepthMap", "StereoConfig", "complete_proxy", "depth_surface", "patchmatch", "proxy_from_depths", "source_views"]
 
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722], np.float32)
 # Eight propagation neighbours of the red-black scheme: each has the other colour.
@@ -98,6 +102,13 @@ class StereoConfig:
         Views wider than this are matched at this width (same aspect).
     seed : int
         Seed of the random planes.
+    colour_tolerance : float or None
+        If given, a kept pixel's colour must also be seen at its point by at least one source view
+        within this difference of log radiance (largest over the channels); None: no colour test.
+        0.15 against None on five 480x360 scenes (``benchmarks/bench_stereo.py``): the pipeline
+        decomposed and relit on the completed proxy gains +0.26 dB over the own proxy at +-15
+        degrees on average, worst -0.33 (None: +0.25, worst -0.74); 0.05 removes the worst loss
+        and most of the gains (+0.12, worst -0.07).
     """
 
     window: int = 4
@@ -114,6 +125,7 @@ class StereoConfig:
     min_region: int = 10
     max_width: int = 640
     seed: int = 0
+    colour_tolerance: float | None = 0.15
 
     def __post_init__(self) -> None:
         for name in ("window", "stride", "source_views", "best_views", "iterations", "max_width"):
@@ -128,6 +140,10 @@ class StereoConfig:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and np.isfinite(value) and value > 0):
                 raise ValueError(f"{name} must be a positive number, got {describe(value)}")
+        tol = self.colour_tolerance
+        if tol is not None and not (isinstance(tol, (int, float)) and not isinstance(tol, bool)
+                                    and np.isfinite(tol) and tol > 0):
+            raise ValueError(f"colour_tolerance must be a positive number or None, got {describe(tol)}")
         if not (isinstance(self.in_front, (int, float)) and 0 <= self.in_front < 1):
             raise ValueError(f"in_front must be in [0, 1), got {describe(self.in_front)}")
         if self.best_views > self.source_views:
@@ -523,15 +539,86 @@ def complete_proxy(scene: Scene, *, config: StereoConfig = StereoConfig(), trace
         maps.append(patchmatch(cameras, greys, k, depth_range=(near, far), prior_depth=proxy_depth[k], config=config))
         if progress is not None:
             progress(f"stereo: view {scene.views[k].stem} in {time.perf_counter() - start:.1f} s")
+    return proxy_from_depths(scene, maps, config=config, tracer=tracer, proxy_depth=proxy_depth), tuple(maps)
+
+
+def _colour_seen(scene: Scene, depth: DepthMap, index: int, keep: np.ndarray, tolerance: float) -> np.ndarray:
+    """Which kept pixels' colours a source view sees at their points within ``tolerance`` (log radiance).
+
+    The colours are read at the nearest pixel of the views' own (possibly distorted) cameras.
+    """
+    points = depth.points()[keep]
+
+    def log_colour(view: View) -> np.ndarray:
+        uv, z = view.camera.project(points)
+        with np.errstate(invalid="ignore"):
+            inside = (z > 0) & view.camera.in_image(uv)
+        out = np.full((len(points), 3), np.nan)
+        i, j = np.floor(uv[inside, 0]).astype(int), np.floor(uv[inside, 1]).astype(int)
+        seen = view.mask[j, i]
+        rgb = np.where(seen[:, None], view.image[j, i], np.nan)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            out[inside] = np.log(np.maximum(rgb, 1e-4))
+        return out
+
+    own = log_colour(scene.views[index])
+    ok = np.zeros(len(points), bool)
+    for k in depth.sources:
+        with np.errstate(invalid="ignore"):
+            ok |= np.abs(log_colour(scene.views[k]) - own).max(axis=1) < tolerance
+    out = np.zeros(keep.shape, bool)
+    out[keep] = ok
+    return out
+
+
+def proxy_from_depths(scene: Scene, depths: Sequence[DepthMap], *, config: StereoConfig = StereoConfig(),
+                      tracer: Tracer | None = None, proxy_depth: Sequence[np.ndarray] | None = None) -> Proxy:
+    """The scene's proxy completed with the kept pixels of its views' depth maps (module docstring, 2-3).
+
+    The selection half of :func:`complete_proxy`: call it again with another ``config`` to try other
+    selections of the same (costly) PatchMatch results.
+
+    Parameters
+    ----------
+    scene : Scene
+        The scene the depth maps were computed for (one per view, in order).
+    depths : sequence of DepthMap
+        :func:`complete_proxy`'s second result.
+    config : StereoConfig, optional
+        Its selection fields (``max_cost``, ``agreeing_views``, ``depth_tolerance``, ``in_front``,
+        ``min_region``, ``colour_tolerance``) apply.
+    tracer : Tracer, optional
+        A tracer of ``scene.proxy`` (built if not given).
+    proxy_depth : sequence of (H, W) arrays, optional
+        The proxy's depth along each depth map's optical axis (computed if not given).
+
+    Returns
+    -------
+    Proxy
+        ``scene.proxy`` with the kept pixels' surfaces appended.
+
+    Raises
+    ------
+    ValueError
+        If ``depths`` does not hold one depth map per view.
+    """
+    if len(depths) != len(scene.views):
+        raise ValueError(f"depths: {len(depths)} depth maps for {len(scene.views)} views")
+    if proxy_depth is None:
+        tracer = Tracer(scene.proxy) if tracer is None else tracer
+        proxy_depth = [depth_map(dm.camera, tracer) * (dm.camera.pixel_rays() @ dm.camera.forward).reshape(dm.camera.shape)
+                       for dm in depths]
     parts = []
-    for k, dm in enumerate(maps):
+    for k, dm in enumerate(depths):
         zp = proxy_depth[k]
         with np.errstate(invalid="ignore"):
             keep = np.isfinite(dm.depth) & (dm.cost <= config.max_cost) & (
                 ~np.isfinite(zp) | (dm.depth < (1.0 - config.in_front) * zp))
-        keep &= _agreeing(maps, k, config.depth_tolerance) >= config.agreeing_views
+        keep &= _agreeing(depths, k, config.depth_tolerance) >= config.agreeing_views
+        if config.colour_tolerance is not None:
+            keep &= _colour_seen(scene, dm, k, keep, config.colour_tolerance)
         if config.min_region > 1:
             _, label, stats, _ = cv2.connectedComponentsWithStats(keep.astype(np.uint8), connectivity=8)
             keep &= stats[label, cv2.CC_STAT_AREA] >= config.min_region
         parts.append((*depth_surface(dm, keep), scene.views[k]))
-    return _with_surfaces(scene.proxy, parts), tuple(maps)
+    return _with_surfaces(scene.proxy, parts)

@@ -163,3 +163,11 @@ def test_relight_error_split_puts_each_pixel_error_in_its_shadow_class():
     assert sum(v["excess"] for v in classes) == pytest.approx(1.0)
     assert sum(v["pixels"] for v in classes) == pytest.approx(1.0)
     assert split["totals"] == {"estimate_mse": pytest.approx(3.75 / 7 / 3), "reference_mse": pytest.approx(3 / 7 / 3)}
+
+
+def test_bench_stereo_smoke_selects_the_same_depth_maps_twice(capsys):
+    import bench_stereo
+
+    assert bench_stereo.main(["--smoke"]) == 0
+    added, kept = (int(w) for w in capsys.readouterr().out.split() if w.isdigit())
+    assert 0 < kept <= added

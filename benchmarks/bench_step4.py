@@ -1,7 +1,7 @@
 """Step 4 (paper Sec. 7) against Step 3 and the colour Retinex baseline: issue 16's measures.
 
     python benchmarks/bench_step4.py [--data DIR] --scene NAME [--scene NAME ...]
-                                     [--proxy {own,exact,stereo}] [--out benchmarks/results/step4.json]
+                                     [--proxy {own,exact,stereo,stereo-no-colour-test}] [--out benchmarks/results/step4.json]
                                      [--timing SCENE]
     python benchmarks/bench_step4.py --smoke
 
@@ -37,7 +37,8 @@ MVS-like one (``proxy_clean.ply`` subdivided as the Step-1 benchmarks do,
 ``bench_step1_accuracy.clean_proxy``; issue 16 asks for ``L_sun`` with the clean and the MVS
 proxies): what the method reaches when the proxy holds the scene. ``--proxy stereo`` runs them
 with the scene's proxy completed by PatchMatch stereo from its photographs
-(:func:`mvintrinsic.stereo.complete_proxy`, no ground truth involved).
+(:func:`mvintrinsic.stereo.complete_proxy`, no ground truth involved; ``stereo-no-colour-test``:
+without its colour test, ``StereoConfig(colour_tolerance=None)``).
 
 ``--timing SCENE`` decomposes SCENE (e.g. ``DIR/courtyard_1000``, 1000x750) with the default
 configuration and reports Step 4's seconds per view from ``decompose``'s timings. ``--smoke``
@@ -117,10 +118,11 @@ def bench_scene(folder: Path, *, proxy: str = "own") -> dict:
         from bench_step1_accuracy import clean_proxy
 
         scene = dataclasses.replace(scene, proxy=clean_proxy(folder, scene))
-    elif proxy == "stereo":  # the proxy completed from the photographs
-        from mvintrinsic.stereo import complete_proxy
+    elif proxy in ("stereo", "stereo-no-colour-test"):  # the proxy completed from the photographs
+        from mvintrinsic.stereo import StereoConfig, complete_proxy
 
-        scene = dataclasses.replace(scene, proxy=complete_proxy(scene)[0])
+        config = StereoConfig(colour_tolerance=None) if proxy == "stereo-no-colour-test" else StereoConfig()
+        scene = dataclasses.replace(scene, proxy=complete_proxy(scene, config=config)[0])
     n = len(scene.views)
     tracer = Tracer(scene.proxy)
     start = time.perf_counter()
@@ -206,8 +208,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=[], help="DATA/NAME, 'demo' or 'dev_courtyard' (repeatable)")
     parser.add_argument("--smoke", action="store_true", help="the demo only")
     parser.add_argument("--timing", type=Path, default=None, help="scene folder for Step 4's seconds per view")
-    parser.add_argument("--proxy", choices=("own", "exact", "stereo"), default="own",
-                        help="the scene's MVS-like proxy (default), its exact mesh, or the proxy completed by stereo")
+    parser.add_argument("--proxy", choices=("own", "exact", "stereo", "stereo-no-colour-test"), default="own",
+                        help="the scene's MVS-like proxy (default), its exact mesh, or the proxy completed by stereo "
+                             "(with or without StereoConfig's colour test)")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     args = parser.parse_args(argv)
     names = ["demo"] if args.smoke else args.scene

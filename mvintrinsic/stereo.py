@@ -528,7 +528,7 @@ def complete_proxy(scene: Scene, *, config: StereoConfig = StereoConfig(), trace
     tracer = Tracer(scene.proxy) if tracer is None else tracer
     cameras, greys = zip(*(_pinhole(view, config.max_width) for view in scene.views), strict=True)
     # The proxy's depth along each optical axis (camera z), inf where it has none.
-    proxy_depth = [depth_map(cam, tracer) * (cam.pixel_rays() @ cam.forward).reshape(cam.shape) for cam in cameras]
+    proxy_depth = [_axis_depth(cam, tracer) for cam in cameras]
     maps = []
     for k in range(len(cameras)):
         start = time.perf_counter()
@@ -540,6 +540,11 @@ def complete_proxy(scene: Scene, *, config: StereoConfig = StereoConfig(), trace
         if progress is not None:
             progress(f"stereo: view {scene.views[k].stem} in {time.perf_counter() - start:.1f} s")
     return proxy_from_depths(scene, maps, config=config, tracer=tracer, proxy_depth=proxy_depth), tuple(maps)
+
+
+def _axis_depth(camera: Camera, tracer: Tracer) -> np.ndarray:
+    """The proxy's depth along the camera's optical axis (camera z) per pixel, (H, W); inf where it has none."""
+    return depth_map(camera, tracer) * (camera.pixel_rays() @ camera.forward).reshape(camera.shape)
 
 
 def _colour_seen(scene: Scene, depth: DepthMap, index: int, keep: np.ndarray, tolerance: float) -> np.ndarray:
@@ -606,8 +611,7 @@ def proxy_from_depths(scene: Scene, depths: Sequence[DepthMap], *, config: Stere
         raise ValueError(f"depths: {len(depths)} depth maps for {len(scene.views)} views")
     if proxy_depth is None:
         tracer = Tracer(scene.proxy) if tracer is None else tracer
-        proxy_depth = [depth_map(dm.camera, tracer) * (dm.camera.pixel_rays() @ dm.camera.forward).reshape(dm.camera.shape)
-                       for dm in depths]
+        proxy_depth = [_axis_depth(dm.camera, tracer) for dm in depths]
     parts = []
     for k, dm in enumerate(depths):
         zp = proxy_depth[k]

@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import pickle
 import sys
 import time
@@ -36,6 +37,7 @@ from pathlib import Path
 import numpy as np
 from bench_relight import _relit_scene, mean_psnr  # benchmarks/ is the script's folder
 
+import mvintrinsic
 from mvintrinsic.evaluation import ground_truth_decomposition
 from mvintrinsic.io import read_proxy
 from mvintrinsic.pipeline import decompose
@@ -174,7 +176,7 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"--scene: no folder {folder}")
         scenes[name] = stereo_scene(folder, tolerances, decomposed=args.decompose, cache=args.cache)
         if args.out is not None:
-            report = {"benchmark": "stereo_selection", "cores": 2,
+            report = {"benchmark": "stereo_selection", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
                       "psnr": "as bench_relight.py: linear RGB, non-sky pixels, clipped at the truth's 99.5th percentile",
                       "scenes": scenes, "summary": summary(scenes)}
             tmp = args.out.with_suffix(".tmp")

@@ -39,7 +39,7 @@ from bench_relight import _relit_scene, mean_psnr  # benchmarks/ is the script's
 
 import mvintrinsic
 from mvintrinsic.evaluation import ground_truth_decomposition
-from mvintrinsic.io import read_proxy
+from mvintrinsic.io import read_proxy, write_json
 from mvintrinsic.pipeline import decompose
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import Relighter
@@ -73,9 +73,11 @@ def stereo_scene(folder: Path, tolerances: list[float | None], *, decomposed: bo
         maps = pickle.loads(cached.read_bytes())
     else:
         maps = complete_proxy(scene, tracer=tracer, progress=print)[1]
-        if cached is not None:
+        if cached is not None:  # written whole or not at all: an interrupted run leaves no partial cache
             cached.parent.mkdir(parents=True, exist_ok=True)
-            cached.write_bytes(pickle.dumps(maps))
+            partial = cached.with_suffix(".partial")
+            partial.write_bytes(pickle.dumps(maps))
+            partial.replace(cached)
     out = {"patchmatch_seconds": time.perf_counter() - start, "selections": {}}
     own_layers = decompose(scene, tracer=tracer)
     own_gt = Relighter(truth, scene, tracer=tracer)
@@ -94,7 +96,8 @@ def stereo_scene(folder: Path, tolerances: list[float | None], *, decomposed: bo
         if decomposed:
             rows["pipeline"] = Relighter(decompose(moved, tracer=moved_tracer), moved, tracer=moved_tracer)
         entry = {"triangles_added": int(len(proxy.triangles) - len(scene.proxy.triangles)),
-                 "retention": {k: float(retained[k]) for k in ("foliage", "thin")}, "psnr": {}}
+                 "retention": {k: float(retained[k]) if np.isfinite(retained[k]) else None for k in ("foliage", "thin")},
+                 "psnr": {}}
         for tag, (direction, images, _) in tags.items():
             sun = np.asarray(direction, dtype=np.float64)
             entry["psnr"][tag] = {row: mean_psnr(r.render(sun), images, sky)["mean"] for row, r in rows.items()}
@@ -142,9 +145,8 @@ def smoke() -> int:
     from test_stereo import make_box_scene  # the tests' textured box the proxy lost
 
     scene = make_box_scene()[0]
-    _, maps = complete_proxy(scene)
+    coloured, maps = complete_proxy(scene)  # the default selection: the colour test at 0.15
     plain = proxy_from_depths(scene, maps, config=StereoConfig(colour_tolerance=None))
-    coloured = proxy_from_depths(scene, maps, config=StereoConfig(colour_tolerance=0.15))
     added = len(plain.triangles) - len(scene.proxy.triangles)
     kept = len(coloured.triangles) - len(scene.proxy.triangles)
     print(f"smoke: {added} triangles added without the colour test, {kept} with it (0.15)")
@@ -179,9 +181,7 @@ def main(argv: list[str] | None = None) -> int:
             report = {"benchmark": "stereo_selection", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
                       "psnr": "as bench_relight.py: linear RGB, non-sky pixels, clipped at the truth's 99.5th percentile",
                       "scenes": scenes, "summary": summary(scenes)}
-            tmp = args.out.with_suffix(".tmp")
-            tmp.write_text(json.dumps(report, indent=1))
-            tmp.replace(args.out)
+            write_json(args.out, report)
     print(json.dumps(summary(scenes), indent=1))
     return 0
 

@@ -30,6 +30,7 @@ from .occluders import (  # noqa: E402
     seen_occluders,
     smooth_occluder_reflectance,
 )
+from .photo_occupancy import OccupancyConfig  # noqa: E402
 from .pipeline import (  # noqa: E402
     Config,
     Step3View,
@@ -59,6 +60,7 @@ __all__ = [
     "IntrinsicLayers",
     "Lighting",
     "OccluderConfig",
+    "OccupancyConfig",
     "Occluders",
     "PixelQuantities",
     "PixelShadowLabels",

@@ -26,38 +26,29 @@ Deviations from the paper, with their reasons
 ---------------------------------------------
 * **One quad per pixel footprint.** "We triangulate the shadow pixels in image space" is read as
   a mesh over the kept pixels' *footprints*: each kept pixel is the quad (two triangles) between
-  its four pixel corners. A corner lies on the camera ray through that pixel corner, at a
-  receiver distance ``s_c``, and is lifted by a caster distance ``t_c``; both average, over the
-  kept pixels touching the corner that lie on the same surface as the pixel, each one's linear
-  extrapolation to the corner (its value plus its image gradient times the half-pixel offset).
-  Two kept pixels are on the same surface when their receiver distances differ by at most
+  its four pixel corners. A corner lies on the camera ray through it, at a receiver distance
+  ``s_c``, lifted by a caster distance ``t_c``; both average, over the kept pixels touching the
+  corner on the same surface as the pixel, each one's linear extrapolation to the corner. Two
+  kept pixels are on the same surface when their receiver distances differ by at most
   :data:`SURFACE_JUMP` (5%) and their caster distances by at most :data:`CASTER_JUMP` (25%, or 8
-  pixel footprints). On a smooth surface every touching pixel extrapolates to the same corner, so
-  neighbouring quads share their corners (the sheet is closed and moves as one when the sun
-  moves), and the corners on the outline of a shadow sit on the receiver rather than half a pixel
-  inside it; across a jump the quads separate instead of stretching. Why not the plain reading
-  (one vertex per shadow pixel centre, two triangles per 2x2 block of shadow pixels): it puts
-  every outline pixel of the shadow on the mesh's edge, where the pixel's own ray grazes a vertex
-  and hits or misses at float32 rounding, and stretches triangles across every depth edge.
-  Measured on ``tests/test_relight.py``'s box-on-a-plane scene (96x72, exact proxy and exact
-  shadow mask, 11 pairs of camera and sun, elevations 30-65 degrees), the mean IoU of the caster's
-  shadow with the exact shadow, at the capture sun and after a 15-degree azimuth change, is
-  0.93 and 0.87 with one vertex per pixel centre, 0.92 and 0.89 with footprint corners averaged
-  without extrapolation, 0.97 and 0.65 with unshared per-pixel quads, and 0.97 and 0.93 with this
-  construction. The two thresholds were chosen on those cases; they are module constants, not
-  paper parameters. Four vertices are stored per kept pixel (shared corners are equal bit for bit,
-  not merged).
-* **Cluster filtering before filling.** The paper does not say in which order it filters clusters
-  and fills missed distances; here clusters are filtered first, so a kept pixel never borrows the
-  distance of a dropped (mislabelled) cluster. A cluster with no proxy hit at all is always
-  dropped (it cannot be lifted), whatever ``min_proxy_hits``.
+  pixel footprints). Neighbouring quads so share their corners (the sheet moves as one when the
+  sun moves), the outline's corners sit on the receiver, and across a jump the quads separate
+  instead of stretching. The plain reading (a vertex per shadow pixel centre) puts every outline
+  pixel on the mesh's edge, where its own ray hits or misses at float32 rounding. On
+  ``tests/test_relight.py``'s box-on-a-plane scene (96x72, exact proxy and shadow, 11 pairs of
+  camera and sun, elevations 30-65 degrees), the mean IoU with the exact shadow at the capture
+  sun and after 15 degrees of azimuth is 0.93 and 0.87 with a vertex per pixel centre, 0.92 and
+  0.89 with corners averaged without extrapolation, 0.97 and 0.65 with unshared quads, 0.97 and
+  0.93 with this construction (its two thresholds, module constants, chosen there).
+* **Cluster filtering before filling**: no kept pixel borrows a dropped cluster's distance; a
+  cluster with no proxy hit is always dropped.
+* **Occluders the proxy lost** (:attr:`RelightConfig.lost_occluders`, :mod:`.photo_occupancy`).
 * **Ray offset.** Rays start ``ray_offset`` metres (0.02, about a TSDF voxel, as in Step 1) along
   the sun direction from the receiver points, against self-intersection with the proxy; the
   caster distances are measured from the receiver point itself.
 * **Which lit pixels vote.** By default every pixel outside the shadow mask casts an ``epsilon``
-  ray (pixels of dropped clusters do not: they were shadow in the input). The caller may pass its
-  own ``lit`` mask, e.g. only pixels the proxy covers and Step 3 labels lit (pixels whose ray
-  misses the proxy, such as the sky, have filled receivers floating in the air).
+  ray; the caller may pass its own ``lit`` mask (only pixels the proxy covers and Step 3 labels
+  lit: a pixel whose ray misses the proxy has a filled receiver floating in the air).
 
 Votes of every view (``method="multiview"``, beyond the paper)
 ---------------------------------------------------------------
@@ -65,27 +56,21 @@ A receiver point lit in *any* photograph is lit; the paper lets only the caster'
 Two uses of that evidence, both measured with ``benchmarks/bench_relight.py`` on four 480x360
 scenes with MVS-like proxies (``docs/relight.md`` gives every figure):
 
-* **Every view votes against every caster.** After :func:`build_caster`, each view's caster is
-  tested again with the capture-sun rays of the lit pixels of all views
-  (:func:`remove_contradicted`): triangles the own view's few rays could not condemn (a single
-  pixel footprint is hit by one or two rays of its own view) reach ``epsilon`` with several views.
-* **The proxy completion is voted on too.** The paper's epsilon test applied to the proxy
-  (:func:`contradicted_primitives`): a proxy triangle first hit by more than ``epsilon`` lit rays
-  of the views at the capture sun completes no shadow later. These are the proxy's
-  reconstruction noise (bumps of a wall shading the wall), wrongly filled holes and light-letting
-  foliage remnants. And hits nearer than ``completion_distance`` (0.6 m) along the new sun ray
-  complete nothing: a noisy proxy shades itself there when the sun turns, while the true
-  short-range shadows the image shows are the caster's. An exact proxy does not shade itself,
-  and there those near hits are true shadows: ``completion_distance="auto"`` (default) measures
-  which (:func:`choose_completion_distance`). On courtyard_s1 with the true layers and
-  the paper's checks, the completion put 3.8% of the non-sky pixels into false shadow at the
-  capture sun (the caster itself 1.8%, while 3.0% were missed). Relit PSNR with the true layers
-  at azimuth +15 degrees on courtyard_s1: 20.28 dB with the paper's checks, 21.15 with every
-  view's votes but no completion distance, 23.19 with both (the input unchanged: 21.32).
-* **Each view keeps its own caster** (``casters="own"``, as the paper): a merged caster (the
-  union of all views') measured 0.6-3.1 dB lower with the true layers on courtyard_s1 (other
-  views' sheets, lifted from receivers the proxy places wrongly under lost foliage, shade the
-  view's lit pixels), so the merge is an option, not the default.
+* **Every view votes against every caster.** Each view's caster is tested again with the
+  capture-sun rays of the lit pixels of all views (:func:`remove_contradicted`): triangles the
+  own view's few rays could not condemn reach ``epsilon`` with several views.
+* **The proxy completion is voted on too** (:func:`contradicted_primitives`): a proxy triangle
+  first hit by more than ``epsilon`` lit rays of the views at the capture sun completes no shadow
+  later (reconstruction noise, wrongly filled holes, light-letting foliage remnants). Hits nearer
+  than ``completion_distance`` (0.6 m) along the new sun ray complete nothing: a noisy proxy
+  shades itself there when the sun turns, while the true short-range shadows are the caster's;
+  an exact proxy does not, and ``completion_distance="auto"`` (default) measures which
+  (:func:`choose_completion_distance`). On courtyard_s1 with the true layers, relit PSNR
+  at azimuth +15 degrees: 20.28 dB with the paper's checks, 21.15 with every view's votes but no
+  completion distance, 23.19 with both (the input unchanged: 21.32).
+* **Each view keeps its own caster** (``casters="own"``, as the paper): the union of all views'
+  measured 0.6-3.1 dB lower with the true layers on courtyard_s1 (other views' sheets, lifted
+  from receivers misplaced under lost foliage, shade the view's lit pixels): an option.
 
 References
 ----------
@@ -96,7 +81,7 @@ References
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -104,6 +89,7 @@ from scipy import ndimage
 
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
+from .photo_occupancy import OccupancyConfig
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
 from .results import SHADOW_LABELS
@@ -235,9 +221,8 @@ class RelightConfig:
         colour is at least ``consistency`` (median over the channels of ``|log I - log I_o|``,
         both in the decomposition's common exposure) from what each of the other views that see
         its receiver point (occlusion-tested) sees there, ``I_o``, or its ray misses the proxy.
-        There the
-        receiver point is not the surface the photograph shows (a crown in front of the facade
-        the proxy kept), so the receiver's new shadow says nothing about the pixel. > 0; None:
+        There the receiver point is not the surface the photograph shows (a crown in front of the
+        facade the proxy kept), so the receiver's new shadow says nothing about the pixel. > 0; None:
         every pixel takes the moved shadow (the paper). Not in the paper; 0.3 as
         :attr:`~mvintrinsic.occluders.OccluderConfig.consistency`, not tuned. Chosen by
         measurement (module docstring of :mod:`mvintrinsic.relight`, "Pixels the proxy does not
@@ -253,6 +238,11 @@ class RelightConfig:
         more across views, the relit images are further from the truth where the views' labels
         disagree); None: each view alone (the paper). Not in the paper (module docstring of
         :mod:`mvintrinsic.relight`, "One shadow in every view").
+    lost_occluders : OccupancyConfig or None
+        A shadow pixel that another view confirms and whose sun ray misses the proxy takes the
+        distance at which the photographs see something the proxy lacks along the ray
+        (:mod:`mvintrinsic.photo_occupancy`; a proxy hit for the cluster rules). None: the paper.
+        Needs accurate labels: row (d) +0.70 dB at +-15 degrees, row (e) -4.8 to +0.8 dB.
     """
 
     tau_s: float = 0.8
@@ -272,6 +262,7 @@ class RelightConfig:
     ray_stride: int = 2
     consistency: float | None = 0.3
     fusion: str | None = "capture"
+    lost_occluders: OccupancyConfig | None = None
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),
@@ -307,6 +298,8 @@ class RelightConfig:
             if not is_real(self.consistency) or not 0.0 < self.consistency < np.inf:
                 raise ValueError(f"consistency must be a finite number > 0 or None, got {self.consistency!r}")
             object.__setattr__(self, "consistency", float(self.consistency))
+        if not isinstance(self.lost_occluders, (OccupancyConfig, type(None))):
+            raise TypeError(f"lost_occluders must be an OccupancyConfig or None, got {describe(self.lost_occluders)}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -586,6 +579,7 @@ def build_caster(
     up: np.ndarray = (0.0, 0.0, 1.0),
     config: RelightConfig | None = None,
     batch: int = DEFAULT_BATCH,
+    occluder_distance: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> Caster:
     """Build the shadow caster of one view from its shadow pixels (paper Sec. 8, Fig. 9).
 
@@ -615,6 +609,9 @@ def build_caster(
     config : RelightConfig, optional
     batch : int, optional
         Rays per Embree call.
+    occluder_distance : callable, optional
+        ``f(miss, sun) -> (H, W)`` metres to an occluder the proxy lacks for the shadow pixels
+        ``miss`` whose rays miss it, ``inf`` if unknown (:attr:`RelightConfig.lost_occluders`).
 
     Returns
     -------
@@ -642,6 +639,9 @@ def build_caster(
     hits = tracer.intersect(receiver[rows, cols], np.broadcast_to(sun, (len(rows), 3)), t_min=offset, batch=batch)
     t = np.full(shape, np.inf)
     t[rows, cols] = hits.t
+    if occluder_distance is not None:  # beyond the paper: occluders the photographs show
+        miss = shadow & ~np.isfinite(t)
+        t = np.where(miss, occluder_distance(miss, sun), t)
     hit = np.isfinite(t)
 
     # 8-connected clusters; drop the small ones and those the proxy does not explain.

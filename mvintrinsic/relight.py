@@ -35,14 +35,13 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
     the sun irradiance of all the views' receivers,
     ``mean(max(0, n . d') v') / mean(max(0, n . d) v_sun)``;
 
-* dropped shadow clusters (too small or unsupported by the proxy, :func:`build_caster`): their
-  occluder is unknown. The paper brings them "in light using the v_sun layer" (``dropped="light"``,
-  default: ``v_sun`` 1, reflectance ``I / (S_sun + S_sky + S_ind)``), so the captured shadow
-  stays in the reflectance while the shadow layer calls them lit; ``"static"`` (beyond the paper)
-  keeps it in the shadow layer: ``v' = v_sun v'_caster``, the layers' reflectance. Both give the
-  image back at the capture sun; ``"static"`` gives every view the shadow layer its image shows:
-  on five scenes the agreement rises at all 22 scene-suns, but row (e) moves by -0.10 to +0.29
-  dB (mean +0.05) and row (d) by -0.29 to +0.13: not better everywhere (``docs/relight.md``);
+* dropped shadow clusters (too small or unsupported by the proxy, :func:`build_caster`; their
+  occluder is unknown): the paper brings them "in light using the v_sun layer" (``dropped="light"``,
+  default: ``v_sun`` 1, reflectance ``I / (S_sun + S_sky + S_ind)``); ``"static"`` (beyond the
+  paper) keeps the shadow in the shadow layer, ``v' = v_sun v'_caster`` (agreement up at all 22
+  scene-suns, row (e) -0.10 to +0.29 dB, row (d) -0.29 to +0.13: ``docs/relight.md``); with
+  :attr:`RelightConfig.lost_occluders` the photographs may place their occluder
+  (:mod:`.photo_occupancy`);
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new
@@ -102,19 +101,17 @@ pixel: the leaves of a crown would take the shadow state of the wall behind them
 shows a colour the other views do not see at its receiver point (they see it through the gaps,
 or the lost surface from elsewhere); where its colour is at least 0.3 in log radiance from what
 each of the other views sees there (the threshold :mod:`.occluders` applies to its camera rays),
-or its ray misses the proxy, it keeps its capture visibility at every sun. One view that agrees
-is enough to keep the pixel moving: against the median of the other views (the first form of the
-test) this flags 12-24% of the pixels instead of 20-28% and loses less where the proxy holds the
-surfaces (street_s2, street_sky). On five 480x360 scenes (courtyard_s1, street_s0, street_s2,
+or its ray misses the proxy, it keeps its capture visibility at every sun (one view that agrees
+keeps the pixel moving: 12-24% of the pixels flagged, 20-28% against the other views' median,
+which lost more where the proxy holds the surfaces). On five 480x360 scenes (courtyard_s1, street_s0, street_s2,
 demo_480, street_sky; 22 scene-suns; with the fusion below) it raises the relit PSNR by -0.02 to
 +0.63 dB with the true layers (row (d) of ``benchmarks/bench_relight.py``; mean +0.18) and by
 -0.06 to +0.38 dB with the pipeline's (row (e); mean +0.10), most on courtyard_s1, whose crowns
 fill the views; it is below each pixel moved at three scene-suns for row (e) (street_s2 az-30,
 street_sky az-15 and az-30, by 0.01-0.06 dB) and without it row (e) falls below the input at
-courtyard_s1 az-30 (``docs/relight.md`` has the tables). With one view, or a point no other view
-sees, there is no evidence and the pixel keeps the moved shadow. Building cost at 1000x750 with
-six views: 0.56 s per view measured with the first form (the receiver points' projection into
-every other view, now shared with the fusion), nothing per new sun.
+courtyard_s1 az-30 (``docs/relight.md`` has the tables). A point no other view sees gives no
+evidence: the pixel keeps the moved shadow. 0.56 s per view to build at 1000x750 with six views
+(measured with the median form), nothing per new sun.
 
 **One shadow in every view** (:attr:`RelightConfig.fusion`). Each view's caster is built from
 its own labels, so two views can move the shadow of one point differently. A pixel whose receiver
@@ -123,11 +120,9 @@ theirs, over the pixels the proxy explains on both sides (a pixel that sees a lo
 see the point), and by default only from the views whose capture state there is its own: a view's
 reflectance was made for its own label, and a shadow state taken from a view that labelled the
 point otherwise relights that reflectance wrongly. On the five scenes it raises row (d) by
-0.04-0.24 dB and row (e) by 0.02-0.33 dB at all 22 scene-suns, and the cross-view agreement of the
-relit shadow state at every one (by up to 0.12 for row (e)); ``"all"`` raises the agreement more
-(row (e) 0.951-0.999 away from the true edges, against 0.880-0.999) but lowers row (e) by up to
-0.93 dB where the views' labels disagree (courtyard_s1). 0.05 s per view to build and 5 ms per view
-and new sun at 1000x750 (one sparse matrix product per view).
+0.04-0.24 dB, row (e) by 0.02-0.33 dB and the cross-view agreement (row (e) by up to 0.12) at all
+22 scene-suns; ``"all"`` raises the agreement more but lowers row (e) by up to 0.93 dB where the
+views' labels disagree. 0.05 s per view to build, 5 ms per view and new sun at 1000x750.
 
 Sources: the paper's Sec. 8 [1]_; the Preetham sky [2]_; the Rayleigh optical depth [3]_ and the air
 mass [4]_ of the "paper" sky adjustment.
@@ -177,6 +172,7 @@ from .caster import (
     remove_contradicted,
     shadow_pixels,
 )
+from .photo_occupancy import photo_occupancy
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, vertex_normals
 from .raytrace import sun_visibility as proxy_vertex_visibility
@@ -200,6 +196,7 @@ from .shadow_caster import (
     _cast_pixels,
     _fuse,
     _fusion_matrices,
+    _nearest_colour,
     _pixel_normals,
     _shared_receivers,
     _unexplained_pixels,
@@ -509,20 +506,31 @@ class Relighter:
             normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape, self._vertex_normals))
             hits[stem] = ray_hits
             cosine[stem] = np.maximum(normals[stem] @ capture, 0.0)  # max(0, cos w_sun), Eq. (1)
+            layers = decomposition.layers[stem]  # pixels with an estimate
+            known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (layers.shading > 0).any(axis=-1))
             timings["receivers"] += time.perf_counter() - start
-
+        start = time.perf_counter()  # what the other views see at each receiver point
+        gains = {stem: lighting.gain(stem) for stem in self.stems}
+        needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
+        links = _shared_receivers(scene.views, receivers, hits) if needed else {}
+        nearest = _nearest_colour(scene.views, gains, links) if needed else {}
+        occupancy = None if config.lost_occluders is None else photo_occupancy(  # beyond the paper
+            scene.views, {s: hits[s].t for s in self.stems}, known, nearest, config=config.lost_occluders)
+        timings["consistency"] = time.perf_counter() - start
+        for view in scene.views:
+            stem, camera, hit = view.stem, view.camera, hits[view.stem].hit.reshape(view.shape)
             start = time.perf_counter()
             layers = decomposition.layers[stem]
             labels = layers.shadow_labels
             shadow = shadow_pixels(labels, layers.visibility, tau_s=config.tau_s)
             lit = hit & ~shadow & (labels == SHADOW_LABELS["lit"])
             lit_points[stem] = receivers[stem][lit]
+            distance = None if occupancy is None else occupancy.sun_ray_distance(
+                receivers[stem], nearest[stem] < config.lost_occluders.consistency)
             casters[stem] = build_caster(camera, shadow, receivers[stem], capture, tracer, lit=lit, up=up,
-                                         config=config, batch=batch)
+                                         config=config, batch=batch, occluder_distance=distance)
             timings["casters"] += time.perf_counter() - start
-
             shading = layers.shading.astype(np.float64)
-            known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (shading > 0).any(axis=-1))
             r, v = layers.reflectance, layers.visibility
             dropped = casters[stem].dropped
             if config.dropped == "light" and dropped.any():
@@ -569,20 +577,17 @@ class Relighter:
         self.casters = MappingProxyType(casters)
         self._hits, self._known = hits, known
         start = time.perf_counter()
-        gains = {stem: lighting.gain(stem) for stem in self.stems}
-        needed = config.consistency is not None or config.fusion is not None
-        shared = _shared_receivers(scene.views, receivers, hits) if needed else {}
-        unexplained = (_unexplained_pixels(scene.views, gains, shared, hits, known, config.consistency)
+        unexplained = (_unexplained_pixels(scene.views, nearest, hits, known, config.consistency)
                        if config.consistency is not None else {})
         self.unexplained = MappingProxyType({s: _read_only(m) for s, m in unexplained.items()})
-        timings["consistency"] = time.perf_counter() - start
+        timings["consistency"] += time.perf_counter() - start
         start = time.perf_counter()
         self._fusion = None
         if config.fusion is not None:
             explained = {s: hits[s].hit.reshape(known[s].shape) & known[s] for s in self.stems}
             for s, flagged in unexplained.items():
                 explained[s] = explained[s] & ~flagged
-            self._fusion = _fusion_matrices(scene.views, shared, explained, visibility, config.fusion)
+            self._fusion = _fusion_matrices(scene.views, links, explained, visibility, config.fusion)
         timings["fusion"] = time.perf_counter() - start
         # The sun-independent inputs of every new sun, once (module docstring, "Speed").
         start = time.perf_counter()

@@ -525,33 +525,41 @@ def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray]
     return out
 
 
-def _unexplained_pixels(views: Sequence[View], gains: Mapping[str, np.ndarray],
-                        shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]], hits: Mapping[str, RayHits],
-                        known: Mapping[str, np.ndarray], consistency: float) -> dict[str, np.ndarray]:
-    """Per view, the pixels the proxy does not explain (:attr:`RelightConfig.consistency`), (H, W) bool.
-
-    The pixel is unexplained when it has an estimate (``known``) and its ray misses the proxy,
-    or when at least one other view sees its receiver point (``shared``,
-    :func:`_shared_receivers`) and none of them sees a colour near its own there: for every such
-    view the median over the channels of ``|log(I + 1e-3) - log(I_other + 1e-3)|`` is not below
-    ``consistency`` (every image divided by its exposure gain, ``gains``, the decomposition's
-    ``lighting.gain``). A point no other view sees gives no evidence: the pixel keeps the moved
-    shadow.
-    """
+def _nearest_colour(views: Sequence[View], gains: Mapping[str, np.ndarray],
+                    shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]]) -> dict[str, np.ndarray]:
+    """Per view, the smallest distance from each pixel's colour to what another view sees at its
+    receiver point (``shared``, :func:`_shared_receivers`), (H, W) float32; ``inf`` where no other
+    view sees it. The distance is the median over the channels of ``|log(I + 1e-3) - log(I_other +
+    1e-3)|``, every image divided by its exposure gain (``gains``, the decomposition's
+    ``lighting.gain``)."""
     logs = {v.stem: np.log(np.maximum(np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32), 0.0)
                            + np.float32(1e-3)).reshape(-1, 3) for v in views}
     out = {}
     for view in views:
-        links = shared[view.stem]
         own_logs = logs[view.stem]
-        n_pixels = len(own_logs)
-        nearest = np.full(n_pixels, np.inf, dtype=np.float32)  # the smallest distance to another view's colour
-        for k, own, theirs in links:  # a pixel appears at most once per other view
+        nearest = np.full(len(own_logs), np.inf, dtype=np.float32)
+        for k, own, theirs in shared[view.stem]:  # a pixel appears at most once per other view
             distance = np.median(np.abs(own_logs[own] - logs[views[k].stem][theirs]), axis=-1)
             nearest[own] = np.minimum(nearest[own], distance)
-        inconsistent = np.isfinite(nearest) & ~(nearest < consistency)
-        hit = hits[view.stem].hit
-        out[view.stem] = known[view.stem] & (~hit | inconsistent).reshape(view.shape)
+        out[view.stem] = nearest.reshape(view.shape)
+    return out
+
+
+def _unexplained_pixels(views: Sequence[View], nearest: Mapping[str, np.ndarray], hits: Mapping[str, RayHits],
+                        known: Mapping[str, np.ndarray], consistency: float) -> dict[str, np.ndarray]:
+    """Per view, the pixels the proxy does not explain (:attr:`RelightConfig.consistency`), (H, W) bool.
+
+    The pixel is unexplained when it has an estimate (``known``) and its ray misses the proxy,
+    or when at least one other view sees its receiver point and none of them sees a colour near
+    its own there: ``nearest`` (:func:`_nearest_colour`) finite and not below ``consistency``. A
+    point no other view sees gives no evidence: the pixel keeps the moved shadow.
+    """
+    out = {}
+    for view in views:
+        nearest_colour = nearest[view.stem]
+        inconsistent = np.isfinite(nearest_colour) & ~(nearest_colour < consistency)
+        hit = hits[view.stem].hit.reshape(view.shape)
+        out[view.stem] = known[view.stem] & (~hit | inconsistent)
     return out
 
 

@@ -1,0 +1,164 @@
+"""Occluders the proxy lost, placed from the photographs (mvintrinsic.photo_occupancy; beyond the paper).
+
+A 0.5 m square, 3 m tall pole stands on a 10 m ground; the proxy holds the ground only (the pole
+is lost, as MVS loses crowns and poles). Six 96x72 views photograph the true scene: the pole is
+bright, the ground grey, and the pole's cast shadow lies on the ground. The paper's caster drops
+that shadow (its sun rays miss the proxy); with ``RelightConfig.lost_occluders`` the views place
+the pole along the rays, and the shadow moves with the sun as the true pole's does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import look_at
+
+from mvintrinsic import Proxy
+from mvintrinsic.camera import Camera
+from mvintrinsic.photo_occupancy import OccupancyConfig, PhotoOccupancy, photo_occupancy
+from mvintrinsic.raytrace import Tracer
+from mvintrinsic.relight import RelightConfig, Relighter, receiver_depth, receiver_points
+from mvintrinsic.results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting
+from mvintrinsic.scene import Scene, Sun, View
+
+W, H = 96, 72
+CENTRES = ([0.5, -4.0, 8.0], [3.0, -5.0, 7.0], [-3.0, -5.0, 7.0], [-5.0, -1.0, 7.0], [5.0, -1.0, 7.0],
+           [0.0, -7.0, 5.0])
+L_SUN, SKY = np.array([3.0, 2.8, 2.5]), np.array([0.5, 0.6, 0.8])
+
+
+def sun(azimuth: float, elevation: float) -> np.ndarray:
+    az, el = np.radians(azimuth), np.radians(elevation)
+    return np.array([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+
+
+CAPTURE, MOVED = sun(150.0, 40.0), sun(165.0, 40.0)
+
+
+def camera_at(center) -> Camera:
+    rotation, translation = look_at(np.asarray(center, float), np.array([0.8, 0.0, 0.0]))
+    return Camera("PINHOLE", W, H, [0.9 * W, 0.9 * W, W / 2, H / 2], rotation, translation)
+
+
+def exact_shadow(tracer: Tracer, points: np.ndarray, normals: np.ndarray, hit: np.ndarray,
+                 direction: np.ndarray) -> np.ndarray:
+    p, n = points.reshape(-1, 3), normals.reshape(-1, 3)
+    occluded = tracer.occluded(p + 1e-3 * n, np.broadcast_to(direction, p.shape), t_min=1e-3)
+    return hit & occluded.reshape(hit.shape)
+
+
+@pytest.fixture(scope="module")
+def world():
+    """The true tracer (ground and pole), the proxy's (ground only), the scene and its true layers."""
+    import open3d as o3d
+
+    ground_mesh = o3d.geometry.TriangleMesh.create_box(10.0, 10.0, 0.01).translate((-5.0, -5.0, -0.01))
+    pole = o3d.geometry.TriangleMesh.create_box(0.5, 0.5, 3.0).translate((-0.25, 0.75, 0.0))
+    mesh = (ground_mesh + pole).subdivide_midpoint(2)
+    mesh.compute_vertex_normals()
+    vertices, triangles = np.asarray(mesh.vertices), np.asarray(mesh.triangles)
+    true = Tracer(Proxy(vertices, np.asarray(mesh.vertex_normals), triangles))
+    on_ground = (vertices[triangles][:, :, 2] <= 0.0).all(axis=1)
+    ground = Proxy(vertices, np.asarray(mesh.vertex_normals), triangles[on_ground])
+    views, layers, truth = [], {}, {}
+    for k, centre in enumerate(CENTRES):
+        stem, camera = f"v{k}", camera_at(centre)
+        depth, hit = receiver_depth(camera, true)
+        points = receiver_points(camera, depth)
+        normals = true.intersect(camera.center, camera.pixel_rays()).normals.reshape(H, W, 3)
+        normals = np.where(hit[..., None], normals, 0.0)
+        on_pole = hit & (points[..., 2] > 1e-3)
+        shadow = exact_shadow(true, points, normals, hit & ~on_pole, CAPTURE)
+        reflectance = np.where(on_pole[..., None], [0.9, 0.85, 0.8], [0.4, 0.4, 0.4])
+        cosine = np.maximum(normals @ CAPTURE, 0.0)
+        zero = ~hit[..., None]
+        layer = IntrinsicLayers(
+            stem, reflectance=np.where(zero, 0.0, reflectance).astype(np.float32),
+            sun_shading=np.where(zero, 0.0, L_SUN * cosine[..., None]).astype(np.float32),
+            sky_shading=np.where(zero, 0.0, np.broadcast_to(SKY, (H, W, 3))).astype(np.float32),
+            indirect_shading=np.zeros((H, W, 3), np.float32),
+            visibility=np.where(hit, ~shadow, 0.0).astype(np.float32),
+            shadow_labels=np.where(hit, np.where(shadow, SHADOW_LABELS["shadow"], SHADOW_LABELS["lit"]),
+                                   SHADOW_LABELS["undecided"]).astype(np.uint8))
+        views.append(View(stem, np.where(zero, np.float32(0.3), layer.reconstruct()), camera))
+        layers[stem] = layer
+        truth[stem] = (points, normals, hit & ~on_pole)
+    scene = Scene(views, ground, Sun(CAPTURE))
+    return true, scene, Decomposition(layers, Lighting(Sun(CAPTURE), L_SUN)), truth
+
+
+def test_the_views_place_the_lost_pole_along_a_ray(world):
+    true, scene, decomposition, truth = world
+    proxy = Tracer(scene.proxy)
+    depth = {v.stem: proxy.intersect(v.camera.center, v.camera.pixel_rays()).t for v in scene.views}
+    known = {v.stem: np.isfinite(depth[v.stem]).reshape(H, W) for v in scene.views}
+    # Ideal evidence: every pole pixel unexplained (far in colour from what the other views see at
+    # its ground receiver point), every ground pixel confirmed.
+    colour = {}
+    for view in scene.views:
+        points, _, ground = truth[view.stem]
+        colour[view.stem] = np.where(ground, 0.0, np.where(known[view.stem], 1.0, np.inf))
+    occupancy = photo_occupancy(scene.views, depth, known, colour)
+    assert isinstance(occupancy, PhotoOccupancy)
+    points, normals, ground = truth["v0"]
+    shadowed = exact_shadow(true, points, normals, ground, CAPTURE)
+    origins = points[shadowed]
+    found = occupancy.first_occupied(origins, CAPTURE)
+    exact = true.intersect(origins + 1e-3 * CAPTURE, np.broadcast_to(CAPTURE, origins.shape)).t
+    # Measured: 50% of the rays found (a sample inside the 5 px wide pole but on its silhouette
+    # projects onto ground pixels of some views), median 0.077 m from the pole, at most 0.37 m.
+    ok = np.isfinite(found)
+    assert ok.mean() > 0.4
+    assert np.median(np.abs(found - exact)[ok]) < 0.15
+    assert np.abs(found - exact)[ok].max() < 0.5
+    # A ray beside the pole finds nothing.
+    assert np.isinf(occupancy.first_occupied(np.array([[4.0, -4.0, 0.0]]), CAPTURE)).all()
+
+
+def test_the_lost_poles_shadow_moves_with_the_sun(world):
+    true, scene, decomposition, truth = world
+    paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0))
+    photo = Relighter(decomposition, scene, config=RelightConfig(blur=0.0, lost_occluders=OccupancyConfig()))
+    points, normals, ground = truth["v0"]
+    captured = exact_shadow(true, points, normals, ground, CAPTURE)
+    moved = exact_shadow(true, points, normals, ground, MOVED)
+    # The paper drops the cluster (no ray hits the proxy): the shadow stays in the reflectance.
+    assert paper.casters["v0"].dropped[captured].all()
+    assert (paper.visibility_at(MOVED)["v0"][ground] > 0.5).all()
+    # The views place the pole: the cluster is kept and the shadow moves as the true one does.
+    # Measured: none dropped; IoU 1.000 at the capture sun and 0.667 after 15 degrees of azimuth
+    # (a sheet lifted from the shadow is not the pole), 97% of the newly shadowed ground covered.
+    assert not photo.casters["v0"].dropped[captured].any()
+    relit = (photo.visibility_at(MOVED)["v0"] < 0.5) & ground
+    again = (photo.visibility_at(CAPTURE)["v0"] < 0.5) & ground
+    assert (again & captured).sum() / (again | captured).sum() > 0.95
+    assert (relit & moved).sum() / (relit | moved).sum() > 0.6
+    assert (relit & moved & ~captured).sum() > 0.9 * (moved & ~captured).sum()
+
+
+@pytest.mark.parametrize(("field", "value"), [("min_views", 0), ("min_views", 2.5), ("share", 0.0), ("share", 1.5),
+                                              ("step", 0.0), ("start", -1.0), ("max_distance", np.inf),
+                                              ("depth_margin", 1.0), ("consistency", 0.0)])
+def test_config_errors_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        OccupancyConfig(**{field: value})
+
+
+def test_bad_inputs_are_named(world):
+    _, scene, _, _ = world
+    with pytest.raises(ValueError, match="start"):
+        OccupancyConfig(start=5.0, max_distance=4.0)
+    with pytest.raises(TypeError, match="lost_occluders"):
+        RelightConfig(lost_occluders=0.3)
+    with pytest.raises(TypeError, match="config"):
+        photo_occupancy(scene.views, {}, {}, {}, config=RelightConfig())
+    shape = scene.views[0].shape
+    full = {v.stem: np.ones(shape) for v in scene.views}
+    with pytest.raises(ValueError, match="known"):
+        photo_occupancy(scene.views, full, {}, full)
+    with pytest.raises(ValueError, match=r"nearest_colour\['v0'\]"):
+        photo_occupancy(scene.views, full, {s: np.ones(shape, bool) for s in full}, {"v0": np.ones((3, 3))} | {
+            s: a for s, a in full.items() if s != "v0"})
+    occupancy = photo_occupancy(scene.views, full, {s: np.ones(shape, bool) for s in full}, full)
+    with pytest.raises(ValueError, match="directions"):
+        occupancy.first_occupied(np.zeros((4, 3)), np.zeros((3, 3)))

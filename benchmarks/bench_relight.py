@@ -80,6 +80,12 @@ picks some of them and ``--update`` merges them into an existing ``--out``.
 at the capture and the new sun and ours at the new sun (:func:`error_split_scene`): which shadows
 the caster misses or adds.
 
+``--lost-occluders`` only scores rows (a), (c), (d) and (e) with and without
+:attr:`~mvintrinsic.relight.RelightConfig.lost_occluders` (the shadow rays that miss the proxy
+take the distance at which the photographs see what the proxy lost, :mod:`mvintrinsic.photo_occupancy`),
+with the seconds per view of building the relighter and the share of shadow pixels dropped
+(:func:`lost_occluders_scene`; ``lost_occluders_summary``: the means at +-15 degrees).
+
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``; ``--size 1000x750``
@@ -115,6 +121,7 @@ from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import ground_truth_decomposition, read_ground_truth
 from mvintrinsic.io import load_scene, read_image, read_proxy, read_scene_json, write_json
 from mvintrinsic.metrics import psnr
+from mvintrinsic.photo_occupancy import OccupancyConfig
 from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import (
@@ -597,6 +604,59 @@ def softness_scene(folder: Path) -> dict:
     return out
 
 
+def lost_occluders_scene(folder: Path) -> dict:
+    """Rows (a), (c), (d), (e) with the default and with ``RelightConfig(lost_occluders=OccupancyConfig())``.
+
+    Per option (``default``, ``lost_occluders``) and row (``gt_caster`` (d), ``pipeline`` (e)): the
+    relit PSNR per tag, the capture-sun PSNR against the input, the relighter's build seconds per
+    view and the share of the views' pixels in dropped shadow clusters. ``input`` (a) and
+    ``gt_mesh`` (c) per tag as in the main run.
+    """
+    scene, tags, sky_mask = _relit_scene(folder, "--lost-occluders")
+    stems = scene.stems
+    tracer = Tracer(scene.proxy)
+    layers = {"gt_caster": ground_truth_decomposition(folder, views=list(stems)),
+              "pipeline": decompose(scene, tracer=tracer)}
+    inputs = {v.stem: v.image for v in scene.views}
+    mesh = MeshShadow(folder, scene)
+    plain = Relighter(layers["gt_caster"], scene, config=RelightConfig(dropped="none"), tracer=tracer)
+    out = {"input": {}, "gt_mesh": {}}
+    for tag, (direction, images, _) in tags.items():
+        out["input"][tag] = mean_psnr(inputs, images, sky_mask)["mean"]
+        out["gt_mesh"][tag] = mean_psnr(plain.render(direction, visibility=mesh.visibility(
+            direction, RelightConfig(blur=0.0))), images, sky_mask)["mean"]
+    for option, config in (("default", RelightConfig()), ("lost_occluders", RelightConfig(lost_occluders=OccupancyConfig()))):
+        out[option] = {}
+        for row, decomposition in layers.items():
+            start = time.perf_counter()
+            relighter = Relighter(decomposition, scene, config=config, tracer=tracer)
+            build = (time.perf_counter() - start) / len(stems)
+            entry = {"build_seconds_per_view": build, "timings_per_view": {k: v / len(stems) for k, v in relighter.timings.items()},
+                     "dropped_share": float(np.mean([relighter.casters[s].dropped.mean() for s in stems])),
+                     "capture": mean_psnr(relighter.render(relighter.sun), inputs, sky_mask)["mean"],
+                     "psnr": {tag: mean_psnr(relighter.render(direction), truth, sky_mask)["mean"]
+                              for tag, (direction, truth, _) in tags.items()}}
+            out[option][row] = entry
+            print(f"{folder.name} {option:14s} {row:9s} build {build:.2f} s/view dropped {entry['dropped_share']:.3f} "
+                  + " ".join(f"{t} {v:.2f}" for t, v in entry["psnr"].items()), flush=True)
+    return out
+
+
+def lost_occluders_summary(study: dict) -> dict:
+    """Means over the scenes' +-15 degree suns (the tags ``az+15``, ``az-15``) of (c) - (d) and (e) - (a)."""
+    out = {}
+    for option in ("default", "lost_occluders"):
+        gaps, gains = [], []
+        for entry in study.values():
+            for tag in ("az+15", "az-15"):
+                if tag in entry["input"]:
+                    gaps.append(entry["gt_mesh"][tag] - entry[option]["gt_caster"]["psnr"][tag])
+                    gains.append(entry[option]["pipeline"]["psnr"][tag] - entry["input"][tag])
+        out[option] = {"c_minus_d_mean": float(np.mean(gaps)), "c_minus_d_max": float(np.max(gaps)),
+                       "e_minus_a_mean": float(np.mean(gains)), "e_minus_a_min": float(np.min(gains)), "scene_suns": len(gaps)}
+    return out
+
+
 def best_visibility(relighter: Relighter, direction: np.ndarray, truth: dict, sky_mask: dict) -> dict:
     """Per view, the visibility in [0, 1] that brings the relit image nearest the path-traced one.
 
@@ -1057,6 +1117,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only rows (c), (d), (e) on proxies simulated with less foliage and thin-structure loss")
     parser.add_argument("--error-split", action="store_true",
                         help="only where row (d)'s squared error is beyond row (c)'s, by true and relit shadow state")
+    parser.add_argument("--lost-occluders", action="store_true",
+                        help="only rows (a), (c)-(e) with and without RelightConfig.lost_occluders (lost_occluders_scene)")
     parser.add_argument("--sky-pixels", action="store_true",
                         help="only compare RelightConfig.sky_pixels' modes on the sky pixels (sky_pixels_scene)")
     parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
@@ -1081,7 +1143,8 @@ def main(argv: list[str] | None = None) -> int:
     studies = (("timing", "timing", functools.partial(time_scene, size=size)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
-               ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene))
+               ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene),
+               ("lost_occluders", "lost_occluders", lost_occluders_scene))
     if args.proxy_variant:
         studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)
@@ -1099,6 +1162,8 @@ def main(argv: list[str] | None = None) -> int:
                 report["bounds_summary"] = bounds_summary(report["bounds"])
             if key == "receivers":
                 report["receivers_summary"] = bounds_summary(report["receivers"], RECEIVER_ROWS)
+            if key == "lost_occluders":
+                report["lost_occluders_summary"] = lost_occluders_summary(report[key])
             if args.out:
                 write_json(args.out, report)
             return 0

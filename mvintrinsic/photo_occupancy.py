@@ -61,8 +61,9 @@ class OccupancyConfig:
     Parameters
     ----------
     min_views : int
-        Views that must see a ray's sample occupied; >= 1. 4 (2 and 3 let the crowns' fringes
-        and the sky seen through them in: row (d) 0.2-1.5 dB lower on street_s0, exploratory).
+        Views that must see a ray's sample occupied; >= 1. 4 (chosen on street_s0, exploratory:
+        2 views with ``share`` 0.7 let the crowns' fringes in, row (d) 0.2-0.3 dB and row (e)
+        1.2-1.9 dB lower; 3 with 0.9 row (d) within 0.02 dB, row (e) 0.2-0.5 dB lower).
     share : float
         Least share of occupied among the views that see the sample occupied or free; in (0, 1].
         1: no view may see through the sample.
@@ -130,8 +131,7 @@ class PhotoOccupancy:
     free: tuple[np.ndarray, ...]
     config: OccupancyConfig
 
-    def first_occupied(self, origins: np.ndarray, directions: np.ndarray, *, skip: int | None = None,
-                       chunk: int = 2000) -> np.ndarray:
+    def first_occupied(self, origins: np.ndarray, directions: np.ndarray, *, chunk: int = 2000) -> np.ndarray:
         """Distance along each ray to its first sample seen occupied, metres; ``inf`` where none.
 
         Parameters
@@ -140,8 +140,6 @@ class PhotoOccupancy:
             World-frame ray origins, metres.
         directions : (3,) or (N, 3) array_like
             Unit directions, one for all rays or one per ray, world frame.
-        skip : int, optional
-            Index of a view whose evidence is not read (a view's own pixel rays).
         chunk : int, optional
             Rays per batch (memory: ``chunk`` times the samples per ray).
 
@@ -163,8 +161,6 @@ class PhotoOccupancy:
             n_occupied = np.zeros(len(points), np.int16)
             n_free = np.zeros(len(points), np.int16)
             for k, camera in enumerate(self.cameras):
-                if k == skip:
-                    continue
                 pixels, z = camera.project(points)
                 inside = np.flatnonzero((z > 0) & camera.in_image(pixels))
                 i = np.floor(pixels[inside, 0]).astype(np.int64)

@@ -131,7 +131,8 @@ class PhotoOccupancy:
     free: tuple[np.ndarray, ...]
     config: OccupancyConfig
 
-    def first_occupied(self, origins: np.ndarray, directions: np.ndarray, *, chunk: int = 2000) -> np.ndarray:
+    def first_occupied(self, origins: np.ndarray, directions: np.ndarray, *, chunk: int = 10000,
+                       block: int = 20) -> np.ndarray:
         """Distance along each ray to its first sample seen occupied, metres; ``inf`` where none.
 
         Parameters
@@ -140,8 +141,10 @@ class PhotoOccupancy:
             World-frame ray origins, metres.
         directions : (3,) or (N, 3) array_like
             Unit directions, one for all rays or one per ray, world frame.
-        chunk : int, optional
-            Rays per batch (memory: ``chunk`` times the samples per ray).
+        chunk, block : int, optional
+            Rays and samples per batch (memory: ``chunk`` times ``block`` points). The samples are
+            tested ``block`` at a time in order of distance, and a ray found stops there; the
+            result does not depend on either.
 
         Returns
         -------
@@ -154,28 +157,37 @@ class PhotoOccupancy:
         config = self.config
         samples = np.arange(config.start, config.max_distance, config.step)
         out = np.full(len(origins), np.inf)
-        for begin in range(0, len(origins), chunk):
-            part = slice(begin, begin + chunk)
-            step = directions if directions.ndim == 1 else directions[part][:, None, :]
-            points = (origins[part][:, None, :] + samples[None, :, None] * step).reshape(-1, 3)
-            n_occupied = np.zeros(len(points), np.int16)
-            n_free = np.zeros(len(points), np.int16)
-            for k, camera in enumerate(self.cameras):
-                pixels, z = camera.project(points)
-                inside = np.flatnonzero((z > 0) & camera.in_image(pixels))
-                i = np.floor(pixels[inside, 0]).astype(np.int64)
-                j = np.floor(pixels[inside, 1]).astype(np.int64)
-                distance = np.linalg.norm(points[inside] - camera.center, axis=1)
-                visible = distance < (1.0 - config.depth_margin) * self.depth[k][j, i]
-                n_occupied[inside] += visible & self.occupied[k][j, i]
-                n_free[inside] += visible & self.free[k][j, i]
-            n_occupied = n_occupied.reshape(-1, len(samples))
-            n_free = n_free.reshape(-1, len(samples))
-            good = (n_occupied >= config.min_views) & (n_occupied >= config.share * (n_occupied + n_free))
-            found = good.any(axis=1)
-            distances = out[part]
-            distances[found] = samples[np.argmax(good[found], axis=1)]
+        active = np.arange(len(origins))
+        for first in range(0, len(samples), block):
+            near = samples[first:first + block]
+            for begin in range(0, len(active), chunk):
+                rays = active[begin:begin + chunk]
+                step = directions if directions.ndim == 1 else directions[rays][:, None, :]
+                points = (origins[rays][:, None, :] + near[None, :, None] * step).reshape(-1, 3)
+                n_occupied, n_free = self._seen(points)
+                n_occupied, n_free = n_occupied.reshape(-1, len(near)), n_free.reshape(-1, len(near))
+                good = (n_occupied >= config.min_views) & (n_occupied >= config.share * (n_occupied + n_free))
+                found = good.any(axis=1)
+                out[rays[found]] = near[np.argmax(good[found], axis=1)]
+            active = active[np.isinf(out[active])]
+            if not len(active):
+                break
         return out
+
+    def _seen(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """How many views see each point (M, 3) occupied and free, two (M,) int16."""
+        n_occupied = np.zeros(len(points), np.int16)
+        n_free = np.zeros(len(points), np.int16)
+        for k, camera in enumerate(self.cameras):
+            pixels, z = camera.project(points)
+            inside = np.flatnonzero((z > 0) & camera.in_image(pixels))
+            i = np.floor(pixels[inside, 0]).astype(np.int64)
+            j = np.floor(pixels[inside, 1]).astype(np.int64)
+            distance = np.linalg.norm(points[inside] - camera.center, axis=1)
+            visible = distance < (1.0 - self.config.depth_margin) * self.depth[k][j, i]
+            n_occupied[inside] += visible & self.occupied[k][j, i]
+            n_free[inside] += visible & self.free[k][j, i]
+        return n_occupied, n_free
 
     def sun_ray_distance(self, receivers: np.ndarray, usable: np.ndarray) -> Callable[[np.ndarray, np.ndarray],
                                                                                       np.ndarray]:

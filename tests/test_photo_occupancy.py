@@ -111,6 +111,8 @@ def test_the_views_place_the_lost_pole_along_a_ray(world):
     assert ok.mean() > 0.4
     assert np.median(np.abs(found - exact)[ok]) < 0.15
     assert np.abs(found - exact)[ok].max() < 0.5
+    # Batching changes nothing: the first occupied sample is the first, block after block.
+    np.testing.assert_array_equal(occupancy.first_occupied(origins, CAPTURE, chunk=7, block=3), found)
     # A ray beside the pole finds nothing.
     assert np.isinf(occupancy.first_occupied(np.array([[4.0, -4.0, 0.0]]), CAPTURE)).all()
 

@@ -33,11 +33,12 @@ Measured (``docs/relight.md``, "Occluders the proxy lost, from the photographs";
 layers (row (d)) it raises the relit PSNR by 0.70 dB on average at +-15 degrees (-0.27 to +1.42;
 row (c) - (d) from 3.91 to 3.21 dB); with the pipeline's own layers (row (e)) it gains on the
 streets but loses up to 4.8 dB on the courtyards, because where the proxy has no occluder a
-third to a half of the pixels the pipeline labels shadow are lit in the truth (dark windows, a lost crown's
-own leaves, lit gaps under it), and a false shadow that moves leaves a reflectance brightened by
-``1 + S_sun / S_env`` in the light. Hence an option, off by default, for accurate shadow layers.
-A solid occluder seen from every side in front of a surface is missed: the views that see it at
-the surface's point agree with each other, so no pixel of it looks unexplained.
+third to a half of the pixels the pipeline labels shadow are lit in the truth (dark windows, a lost
+crown's own leaves, lit gaps under it): their sheets cast false shadows at the new sun, and their
+reflectance, made for a shadow, is brighter than the paper's dropping leaves it in the light.
+Hence an option, off by default, for accurate shadow layers. A solid occluder seen from every
+side in front of a surface is missed: the views that see it at the surface's point agree with
+each other, so no pixel of it looks unexplained.
 """
 
 from __future__ import annotations

@@ -240,9 +240,9 @@ class RelightConfig:
         :mod:`mvintrinsic.relight`, "One shadow in every view").
     lost_occluders : OccupancyConfig or None
         A shadow pixel that another view confirms and whose sun ray misses the proxy takes the
-        distance at which the photographs see something the proxy lacks along the ray
-        (:mod:`mvintrinsic.photo_occupancy`; a proxy hit for the cluster rules). None: the paper.
-        Needs accurate labels: row (d) +0.70 dB at +-15 degrees, row (e) -4.8 to +0.8 dB.
+        distance at which the photographs see what the proxy lacks along the ray (a proxy hit for
+        the cluster rules, then at least ``min_hits``; :mod:`mvintrinsic.photo_occupancy`). None:
+        the paper. Measured in ``docs/relight.md`` ("Occluders the proxy lost").
     """
 
     tau_s: float = 0.8

@@ -74,13 +74,10 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
   than the truth (median).
 * **Default "paper" by measurement**: on the demo it scores higher than ``"model"`` in every row:
   the full pipeline 23.55 / 22.75 against 23.45 / 22.18, the true layers with the true shadow
-  27.03 / 26.08 against 26.83 / 25.90. With the true layers, in the pixels in shadow in both
-  renders, the median ratio of the new to the old ``S_env`` (RGB) is 1.07 / 1.05 / 1.05 and
-  0.97 / 1.03 / 1.10 with ``"model"``, 1 / 1 / 1 and 0.99 / 1.00 / 1.03 with ``"paper"``, and
-  1.08 / 1.07 / 1.07 and 0.97 / 1.00 / 1.06 in the truth: ``"model"`` follows the azimuth change
-  (those pixels score 27.14 against 26.88) but overshoots the blue shift of the higher sun
-  (26.25 against 26.48), and loses on the pixels lit in both (29.74 against 30.16, 27.38 against
-  27.58).
+  27.03 / 26.08 against 26.83 / 25.90. In the pixels in shadow in both renders ``"model"``
+  follows the azimuth change of ``S_env`` (those pixels score 27.14 against 26.88) but overshoots
+  the blue shift of the higher sun (26.25 against 26.48), and loses on the pixels lit in both
+  (29.74 against 30.16, 27.38 against 27.58; the ratios of ``S_env`` in ``docs/relight.md``).
 * **Sky irradiance ratio, not re-integration**: ``"model"`` scales the layers' ``S_sky``, which
   holds the occlusion Step 1 traced, by the ratio of *unoccluded* sky irradiances (a ratio over
   each receiver's unoccluded directions moved row (d) by -0.02 to +0.13 dB, ``docs/relight.md``).
@@ -145,6 +142,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Mapping
+from dataclasses import replace
 from types import MappingProxyType
 from typing import Any
 
@@ -525,10 +523,12 @@ class Relighter:
             shadow = shadow_pixels(labels, layers.visibility, tau_s=config.tau_s)
             lit = hit & ~shadow & (labels == SHADOW_LABELS["lit"])
             lit_points[stem] = receivers[stem][lit]
-            distance = None if occupancy is None else occupancy.sun_ray_distance(
-                receivers[stem], nearest[stem] < config.lost_occluders.consistency)
+            distance, rule = None, config  # with lost_occluders, its own cluster rule (OccupancyConfig.min_hits)
+            if occupancy is not None:
+                distance = occupancy.sun_ray_distance(receivers[stem], nearest[stem] < config.lost_occluders.consistency)
+                rule = replace(config, min_proxy_hits=max(config.min_proxy_hits, config.lost_occluders.min_hits))
             casters[stem] = build_caster(camera, shadow, receivers[stem], capture, tracer, lit=lit, up=up,
-                                         config=config, batch=batch, occluder_distance=distance)
+                                         config=rule, batch=batch, occluder_distance=distance)
             timings["casters"] += time.perf_counter() - start
             shading = layers.shading.astype(np.float64)
             r, v = layers.reflectance, layers.visibility

@@ -54,7 +54,7 @@ from ._validation import as_array, is_real
 from .camera import Camera
 from .scene import View
 
-__all__ = ["OccupancyConfig", "PhotoOccupancy", "photo_occupancy"]
+__all__ = ["OccupancyConfig", "PhotoOccupancy", "photo_occupancy", "unexplained_pixels"]
 
 
 @dataclass(frozen=True)
@@ -105,15 +105,12 @@ class OccupancyConfig:
         if isinstance(self.min_views, bool) or not isinstance(self.min_views, (int, np.integer)) or self.min_views < 1:
             raise ValueError(f"min_views must be an integer >= 1, got {self.min_views!r}")
         object.__setattr__(self, "min_views", int(self.min_views))
-        if not is_real(self.min_hits) or not 0.0 <= self.min_hits <= 1.0:
-            raise ValueError(f"min_hits must be a number in [0, 1], got {self.min_hits!r}")
-        object.__setattr__(self, "min_hits", float(self.min_hits))
-        for name, low, high, closed in (("share", 0.0, 1.0, True), ("depth_margin", 0.0, 1.0, False)):
+        for name, inside, interval in (("share", lambda v: 0.0 < v <= 1.0, "(0, 1]"),
+                                       ("depth_margin", lambda v: 0.0 <= v < 1.0, "[0, 1)"),
+                                       ("min_hits", lambda v: 0.0 <= v <= 1.0, "[0, 1]")):
             value = getattr(self, name)
-            inside = is_real(value) and ((low < value <= high) if closed else (low <= value < high))
-            if not inside:
-                raise ValueError(f"{name} must be a number in {'(' if closed else '['}{low}, {high}{']' if closed else ')'}, "
-                                 f"got {value!r}")
+            if not is_real(value) or not inside(value):
+                raise ValueError(f"{name} must be a number in {interval}, got {value!r}")
             object.__setattr__(self, name, float(value))
         for name in ("step", "start", "max_distance", "consistency"):
             value = getattr(self, name)
@@ -205,33 +202,46 @@ class PhotoOccupancy:
             n_free[inside] += visible & self.free[k][j, i]
         return n_occupied, n_free
 
-    def sun_ray_distance(self, receivers: np.ndarray, usable: np.ndarray) -> Callable[[np.ndarray, np.ndarray],
-                                                                                      np.ndarray]:
-        """The ``occluder_distance`` of :func:`~mvintrinsic.caster.build_caster` for one view.
+    def sun_ray_distance(self, index: int, receivers: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
+        """The ``occluder_distance`` of :func:`~mvintrinsic.caster.build_caster` for view ``index``.
+
+        Only the pixels that see a proxy surface another view confirms (``free`` and on the
+        proxy) take a distance: a pixel that sees the lost occluder itself casts no shadow ray.
 
         Parameters
         ----------
+        index : int
+            The view's position in :attr:`cameras`.
         receivers : (H, W, 3) array_like
             The view's receiver points, world frame, metres.
-        usable : (H, W) bool array_like
-            Pixels whose sun ray may take a distance (those that see a confirmed proxy surface).
 
         Returns
         -------
         callable
-            ``f(miss, sun) -> (H, W) float64``: for the pixels of ``miss`` ((H, W) bool) that are
-            ``usable``, :meth:`first_occupied` along ``sun`` from their receiver; ``inf`` elsewhere.
+            ``f(miss, sun) -> (H, W) float64``: for those pixels of ``miss`` ((H, W) bool),
+            :meth:`first_occupied` along ``sun`` from their receiver; ``inf`` elsewhere.
         """
         receivers = np.asarray(receivers, dtype=np.float64)
-        usable = np.asarray(usable, dtype=bool)
+        confirmed = self.free[index] & np.isfinite(self.depth[index])
 
         def distance(miss: np.ndarray, sun: np.ndarray) -> np.ndarray:
             out = np.full(np.shape(miss), np.inf)
-            use = np.asarray(miss, dtype=bool) & usable
+            use = np.asarray(miss, dtype=bool) & confirmed
             out[use] = self.first_occupied(receivers[use], sun)
             return out
 
         return distance
+
+
+def unexplained_pixels(known: np.ndarray, hit: np.ndarray, nearest_colour: np.ndarray,
+                       consistency: float) -> np.ndarray:
+    """The pixels the proxy does not explain, (H, W) bool (:attr:`RelightConfig.consistency
+    <mvintrinsic.caster.RelightConfig>`): with an estimate (``known``) and a camera ray that misses
+    the proxy (``~hit``), or a colour at least ``consistency`` from what each other view sees at
+    the receiver point (``nearest_colour`` finite and not below it; ``inf``: no other view sees the
+    point, no evidence)."""
+    inconsistent = np.isfinite(nearest_colour) & ~(nearest_colour < consistency)
+    return known & (~hit | inconsistent)
 
 
 def photo_occupancy(views: Sequence[View], depth: Mapping[str, np.ndarray], known: Mapping[str, np.ndarray],
@@ -243,7 +253,7 @@ def photo_occupancy(views: Sequence[View], depth: Mapping[str, np.ndarray], know
     ----------
     views : sequence of View
         The views (their cameras and ``mask`` of valid pixels).
-    depth : mapping of str to (H, W) or (H*W,) array_like
+    depth : mapping of str to (H, W) array_like
         Per view stem, the distance to the proxy along each unit pixel ray, metres; ``inf`` (or
         NaN) where the ray misses it.
     known : mapping of str to (H, W) bool array_like
@@ -272,17 +282,11 @@ def photo_occupancy(views: Sequence[View], depth: Mapping[str, np.ndarray], know
         for name, mapping in (("depth", depth), ("known", known), ("nearest_colour", nearest_colour)):
             if stem not in mapping:
                 raise ValueError(f"{name}: no array for view {stem!r}")
-        d = np.asarray(depth[stem], dtype=np.float64)
-        d = as_array(d.reshape(shape) if d.size == shape[0] * shape[1] else d, f"depth[{stem!r}]", shape=shape,
-                     dtype=np.float64, finite=False)
-        d = np.where(np.isfinite(d), d, np.inf)
+        d = as_array(depth[stem], f"depth[{stem!r}]", shape=shape, dtype=np.float64, finite=False)
+        hit = np.isfinite(d)
         k = as_array(known[stem], f"known[{stem!r}]", shape=shape, dtype=bool)
         c = as_array(nearest_colour[stem], f"nearest_colour[{stem!r}]", shape=shape, dtype=np.float64, finite=False)
-        hit = np.isfinite(d)
-        with np.errstate(invalid="ignore"):
-            unexplained = k & (~hit | (np.isfinite(c) & ~(c < config.consistency)))
-            confirmed = hit & (c < config.consistency)
-        depths.append(d)
-        occupied.append(unexplained)
-        free.append((view.mask & ~k & ~hit) | (confirmed & ~unexplained))
+        depths.append(np.where(hit, d, np.inf))
+        occupied.append(unexplained_pixels(k, hit, c, config.consistency))
+        free.append((view.mask & ~k & ~hit) | (hit & (c < config.consistency)))  # sky; a surface another view confirms
     return PhotoOccupancy(tuple(v.camera for v in views), tuple(depths), tuple(occupied), tuple(free), config)

@@ -512,10 +512,13 @@ class Relighter:
         needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
         links = _shared_receivers(scene.views, receivers, hits) if needed else {}
         nearest = _nearest_colour(scene.views, gains, links) if needed else {}
-        occupancy = None if config.lost_occluders is None else photo_occupancy(  # beyond the paper
-            scene.views, {s: hits[s].t for s in self.stems}, known, nearest, config=config.lost_occluders)
+        occupancy, rule = None, config  # with lost_occluders (beyond the paper) its cluster rule, min_hits
+        if config.lost_occluders is not None:
+            occupancy = photo_occupancy(scene.views, {s: hits[s].t.reshape(known[s].shape) for s in self.stems},
+                                        known, nearest, config=config.lost_occluders)
+            rule = replace(config, min_proxy_hits=max(config.min_proxy_hits, config.lost_occluders.min_hits))
         timings["consistency"] = time.perf_counter() - start
-        for view in scene.views:
+        for index, view in enumerate(scene.views):
             stem, camera, hit = view.stem, view.camera, hits[view.stem].hit.reshape(view.shape)
             start = time.perf_counter()
             layers = decomposition.layers[stem]
@@ -523,10 +526,7 @@ class Relighter:
             shadow = shadow_pixels(labels, layers.visibility, tau_s=config.tau_s)
             lit = hit & ~shadow & (labels == SHADOW_LABELS["lit"])
             lit_points[stem] = receivers[stem][lit]
-            distance, rule = None, config  # with lost_occluders, its own cluster rule (OccupancyConfig.min_hits)
-            if occupancy is not None:
-                distance = occupancy.sun_ray_distance(receivers[stem], nearest[stem] < config.lost_occluders.consistency)
-                rule = replace(config, min_proxy_hits=max(config.min_proxy_hits, config.lost_occluders.min_hits))
+            distance = None if occupancy is None else occupancy.sun_ray_distance(index, receivers[stem])
             casters[stem] = build_caster(camera, shadow, receivers[stem], capture, tracer, lit=lit, up=up,
                                          config=rule, batch=batch, occluder_distance=distance)
             timings["casters"] += time.perf_counter() - start

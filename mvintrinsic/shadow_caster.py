@@ -85,6 +85,7 @@ from .camera import Camera
 from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array, _rays
 from .correspondence import seen_pixels
 from .envmap import horizontal_frame
+from .photo_occupancy import unexplained_pixels
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, RayHits, Tracer, triangle_scene, vertex_normals
 from .scene import Sun, View
@@ -554,13 +555,8 @@ def _unexplained_pixels(views: Sequence[View], nearest: Mapping[str, np.ndarray]
     its own there: ``nearest`` (:func:`_nearest_colour`) finite and not below ``consistency``. A
     point no other view sees gives no evidence: the pixel keeps the moved shadow.
     """
-    out = {}
-    for view in views:
-        nearest_colour = nearest[view.stem]
-        inconsistent = np.isfinite(nearest_colour) & ~(nearest_colour < consistency)
-        hit = hits[view.stem].hit.reshape(view.shape)
-        out[view.stem] = known[view.stem] & (~hit | inconsistent)
-    return out
+    return {v.stem: unexplained_pixels(known[v.stem], hits[v.stem].hit.reshape(v.shape), nearest[v.stem], consistency)
+            for v in views}
 
 
 def _fusion_matrices(views: Sequence[View], shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]],

@@ -90,8 +90,8 @@ def world():
 def test_the_views_place_the_lost_pole_along_a_ray(world):
     true, scene, decomposition, truth = world
     proxy = Tracer(scene.proxy)
-    depth = {v.stem: proxy.intersect(v.camera.center, v.camera.pixel_rays()).t for v in scene.views}
-    known = {v.stem: np.isfinite(depth[v.stem]).reshape(H, W) for v in scene.views}
+    depth = {v.stem: proxy.intersect(v.camera.center, v.camera.pixel_rays()).t.reshape(H, W) for v in scene.views}
+    known = {v.stem: np.isfinite(depth[v.stem]) for v in scene.views}
     # Ideal evidence: every pole pixel unexplained (far in colour from what the other views see at
     # its ground receiver point), every ground pixel confirmed.
     colour = {}

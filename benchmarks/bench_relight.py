@@ -248,6 +248,10 @@ class MeshShadow:
         return {s: self.caster.sun_visibility(self.points[s], self.normals[s], direction, config=config)
                 for s in self.points}
 
+    def render(self, plain: Relighter, direction: np.ndarray, config: RelightConfig) -> dict:
+        """Row (c): ``plain`` (the true layers, ``dropped="none"``) relit with the sharp exact shadow."""
+        return plain.render(direction, visibility=self.visibility(direction, dataclasses.replace(config, blur=0.0)))
+
 
 def caster_summary(relighter: Relighter) -> dict:
     merged = relighter.caster
@@ -623,8 +627,7 @@ def lost_occluders_scene(folder: Path) -> dict:
     out = {"input": {}, "gt_mesh": {}}
     for tag, (direction, images, _) in tags.items():
         out["input"][tag] = mean_psnr(inputs, images, sky_mask)["mean"]
-        out["gt_mesh"][tag] = mean_psnr(plain.render(direction, visibility=mesh.visibility(
-            direction, RelightConfig(blur=0.0))), images, sky_mask)["mean"]
+        out["gt_mesh"][tag] = mean_psnr(mesh.render(plain, direction, RelightConfig()), images, sky_mask)["mean"]
     for option, config in (("default", RelightConfig()), ("lost_occluders", RelightConfig(lost_occluders=OccupancyConfig()))):
         out[option] = {}
         for row, decomposition in layers.items():
@@ -886,7 +889,7 @@ def receivers_scene(folder: Path) -> dict:
         far = exact_from_proxy(sun, AUTO_COMPLETION_DISTANCE)
         caster = ours.visibility_at(sun)
         rows = {"input": inputs,
-                "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),
+                "gt_mesh": mesh.render(plain, sun, config),
                 "gt_caster": ours.render(sun, visibility=caster),
                 "gt_caster_exact_receivers": oracle.render(sun),
                 "exact_at_proxy": plain.render(sun, visibility=everything),
@@ -1021,7 +1024,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
         for tag, (direction, images, _) in tags.items():
             sun = np.asarray(direction, dtype=np.float64)
             rows = {"input": inputs,
-                    "gt_mesh": plain.render(sun, visibility=mesh.visibility(sun, dataclasses.replace(config, blur=0.0))),
+                    "gt_mesh": mesh.render(plain, sun, config),
                     "gt_caster": ours.render(sun)}
             if pipeline_relighter is not None:
                 rows["pipeline"] = pipeline_relighter.render(sun)

@@ -84,7 +84,10 @@ the caster misses or adds.
 :attr:`~mvintrinsic.relight.RelightConfig.lost_occluders` (the shadow rays that miss the proxy
 take the distance at which the photographs see what the proxy lost, :mod:`mvintrinsic.photo_occupancy`),
 with the seconds per view of building the relighter and the share of shadow pixels dropped
-(:func:`lost_occluders_scene`; ``lost_occluders_summary``: the means at +-15 degrees).
+(:func:`lost_occluders_scene`; ``lost_occluders_summary``: the means at +-15 degrees). The option
+runs with its defaults (``OccupancyConfig.belief`` 0.5 since 2026-11-27: the rescued clusters' pixels
+mix the moved shadow and the paper's image; ``results/relight_lost_occluders_belief1.json`` is the
+run before, the moved shadow alone).
 
 ``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed

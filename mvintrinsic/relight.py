@@ -41,7 +41,8 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
   paper) keeps the shadow in the shadow layer, ``v' = v_sun v'_caster`` (agreement up at all 22
   scene-suns, row (e) -0.10 to +0.29 dB, row (d) -0.29 to +0.13: ``docs/relight.md``); with
   :attr:`RelightConfig.lost_occluders` the photographs may place their occluder
-  (:mod:`.photo_occupancy`);
+  (:mod:`.photo_occupancy`), and the pixels of the clusters kept only thanks to it mix the two
+  images (:attr:`Relighter.rescued`, ``OccupancyConfig.belief``);
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new
@@ -66,12 +67,9 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
   true relit visibility: 27.02 / 26.10 with the change, 22.59 / 20.72 with
   ``L_sun max(0, n . d')`` alone, 24.58 / 23.44 with the ratio ``S_sun max(0, n . d') / max(0,
   n . d)``; the full pipeline 23.55 / 22.75, 20.36 / 19.18 and 22.24 / 21.40.
-* **The environment "paper" is our reading**: the paper gives no formula (see above and
-  :func:`paper_environment_factors`). ``L_sun`` keeps its colour and intensity, as in the paper
-  (Sec. 9.4: the relit shadows "have the same color as the shadow in the input image because they
-  are computed from an estimate of the same sun color and sky model"); on the demo the renderer's
-  sun is brighter at a higher elevation and the lit pixels at +10 degrees come out 4.6% darker
-  than the truth (median).
+* **The environment "paper" is our reading** (:func:`paper_environment_factors`). ``L_sun`` keeps
+  its colour and intensity, as in the paper (Sec. 9.4); on the demo the renderer's sun is brighter
+  at a higher elevation and the lit pixels at +10 degrees come out 4.6% darker (median).
 * **Default "paper" by measurement**: on the demo it scores higher than ``"model"`` in every row:
   the full pipeline 23.55 / 22.75 against 23.45 / 22.18, the true layers with the true shadow
   27.03 / 26.08 against 26.83 / 25.90. In the pixels in shadow in both renders ``"model"``
@@ -83,10 +81,8 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
   each receiver's unoccluded directions moved row (d) by -0.02 to +0.13 dB, ``docs/relight.md``).
   The scale ``k`` of Eq. (4) cancels; the absolute zenith luminance of Preetham et al. (Appendix
   A.2), which the relative model leaves to ``k``, does not, and is applied.
-* **Pixels without an estimate** (the layers hold 0: sky, invalid pixels) show the input image in
-  :meth:`Relighter.render` (``fill``); those whose ray misses the proxy above the horizon are sky
-  and change colour (Sec. 8, "we detect sky pixels and change their color near the horizon";
-  :attr:`RelightConfig.sky_pixels`, :func:`~mvintrinsic.relit_shading.sky_pixel_factors`).
+* **Pixels without an estimate** (sky, invalid pixels) show the input image (``fill``); sky pixels
+  change colour (Sec. 8; :attr:`RelightConfig.sky_pixels`, :func:`~mvintrinsic.relit_shading.sky_pixel_factors`).
 * **On the demo the paper's caster keeps no cluster** (the proxy lost 90% of the foliage and of
   the thin structures; ``docs/relight.md``, "The demo's clusters").
 
@@ -99,27 +95,21 @@ shows a colour the other views do not see at its receiver point (they see it thr
 or the lost surface from elsewhere); where its colour is at least 0.3 in log radiance from what
 each of the other views sees there (the threshold :mod:`.occluders` applies to its camera rays),
 or its ray misses the proxy, it keeps its capture visibility at every sun (one view that agrees
-keeps the pixel moving: 12-24% of the pixels flagged, 20-28% against the other views' median,
-which lost more where the proxy holds the surfaces). On five 480x360 scenes (courtyard_s1, street_s0, street_s2,
-demo_480, street_sky; 22 scene-suns; with the fusion below) it raises the relit PSNR by -0.02 to
-+0.63 dB with the true layers (row (d) of ``benchmarks/bench_relight.py``; mean +0.18) and by
--0.06 to +0.38 dB with the pipeline's (row (e); mean +0.10), most on courtyard_s1, whose crowns
-fill the views; it is below each pixel moved at three scene-suns for row (e) (street_s2 az-30,
-street_sky az-15 and az-30, by 0.01-0.06 dB) and without it row (e) falls below the input at
-courtyard_s1 az-30 (``docs/relight.md`` has the tables). A point no other view sees gives no
+keeps the pixel moving). On five 480x360 scenes (22 scene-suns, with the fusion below) it raises
+the relit PSNR by -0.02 to +0.63 dB with the true layers (row (d) of ``bench_relight.py``, mean
++0.18) and by -0.06 to +0.38 dB with the pipeline's (row (e), mean +0.10; tables and the three
+scene-suns below each pixel moved in ``docs/relight.md``). A point no other view sees gives no
 evidence: the pixel keeps the moved shadow. 0.56 s per view to build at 1000x750 with six views
 (measured with the median form), nothing per new sun.
 
 **One shadow in every view** (:attr:`RelightConfig.fusion`). Each view's caster is built from
 its own labels, so two views can move the shadow of one point differently. A pixel whose receiver
 point other views see (the projection and depth test above) takes the mean of its own ``v'`` and
-theirs, over the pixels the proxy explains on both sides (a pixel that sees a lost crown does not
-see the point), and by default only from the views whose capture state there is its own: a view's
-reflectance was made for its own label, and a shadow state taken from a view that labelled the
-point otherwise relights that reflectance wrongly. On the five scenes it raises row (d) by
-0.04-0.24 dB, row (e) by 0.02-0.33 dB and the cross-view agreement (row (e) by up to 0.12) at all
-22 scene-suns; ``"all"`` raises the agreement more but lowers row (e) by up to 0.93 dB where the
-views' labels disagree. 0.05 s per view to build, 5 ms per view and new sun at 1000x750.
+theirs, over the pixels the proxy explains on both sides, by default only from the views whose
+capture state there is its own (a view's reflectance was made for its own label). On the five
+scenes it raises rows (d), (e) and the cross-view agreement at all 22 scene-suns (``"all"`` the
+agreement more, but row (e) by up to 0.93 dB less; ``docs/relight.md``). 0.05 s per view to
+build, 5 ms per view and new sun at 1000x750.
 
 Sources: the paper's Sec. 8 [1]_; the Preetham sky [2]_; the Rayleigh optical depth [3]_ and the air
 mass [4]_ of the "paper" sky adjustment.
@@ -170,7 +160,7 @@ from .caster import (
     remove_contradicted,
     shadow_pixels,
 )
-from .photo_occupancy import photo_occupancy
+from .photo_occupancy import blend_rescued, photo_occupancy
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, vertex_normals
 from .raytrace import sun_visibility as proxy_vertex_visibility
@@ -410,15 +400,11 @@ class Relighter:
         Rays per Embree call.
     client : distributed.Client, optional
         A dask.distributed client: :meth:`render` then runs one task per view on its cluster
-        (``docs/distributed.md``). Building stays here (the casters need every view's votes); at
-        the end each view's inputs of a new sun (receivers, completion lookup, shading terms and
-        caster, about 120 bytes per pixel, 180 with ``sky="model"``) are shipped once to one
-        worker, the proxy once to every worker, and each worker builds its own Embree structures
-        over them (they cannot be pickled):
-        the proxy's tracer is ``Tracer(scene.proxy)`` there, so a ``tracer`` built with other
-        surfel parameters (point clouds) would not be matched. The images are identical to
-        those rendered here. None (default): everything runs in this process; dask is not
-        imported.
+        (``docs/distributed.md``). Building stays here; each view's inputs of a new sun (about
+        120 bytes per pixel, 180 with ``sky="model"``) are shipped once to one worker, the proxy
+        once to every worker, where ``Tracer(scene.proxy)`` is rebuilt (a ``tracer`` built with
+        other surfel parameters would not be matched). The images are identical to those
+        rendered here. None (default): everything runs in this process; dask is not imported.
 
     Attributes
     ----------
@@ -439,6 +425,10 @@ class Relighter:
         Per view, the pixels the proxy does not explain (``config.consistency``: their ray misses
         the proxy, or their colour disagrees with what the other views see at their receiver
         point); they keep :attr:`visibility` at every sun. Empty with ``consistency=None``.
+    rescued : mapping of str to (H, W) bool
+        Per view, the pixels of the clusters the paper's rule drops and ``config.lost_occluders``
+        keeps, where :meth:`render` mixes the two (:attr:`OccupancyConfig.belief
+        <mvintrinsic.photo_occupancy.OccupancyConfig>`); empty without the option or with belief 1.
     casters : mapping of str to Caster
         Per view, after the votes of every view (``method="multiview"``) and before merging
         (``dropped``: the pixels of the dropped clusters, ``config.dropped``).
@@ -456,7 +446,8 @@ class Relighter:
         the proxy), ``shadow_caster`` (merging and the BVHs), ``consistency`` (which other views'
         pixels see each receiver point, and the pixels the proxy does not explain,
         :attr:`unexplained`), ``fusion`` (the averaging of ``config.fusion``), ``new_sun_setup`` (what every new
-        sun reuses: the completion lookups and the shading terms) and, with a ``client``,
+        sun reuses: the completion lookups and the shading terms), with :attr:`rescued` ``paper``
+        (the paper's relighter, all its steps) and, with a ``client``,
         ``scatter`` (shipping those to the workers, which build their Embree structures).
 
     Raises
@@ -617,6 +608,13 @@ class Relighter:
             builds = {s: (self._remote["casters"][s], self._remote["tracer"]) for s in self.stems}
             self._tasks.gather(self._tasks.submit("relight-build", _build_task, builds))
             timings["scatter"] = time.perf_counter() - start
+        lost = config.lost_occluders  # its belief < 1 (beyond the paper): the paper's relighter too
+        self._paper = None if lost is None or lost.belief == 1 else Relighter(
+            decomposition, scene, config=replace(config, lost_occluders=None), tracer=tracer, batch=batch, client=client)
+        self.rescued = MappingProxyType({s: _read_only(self._paper.casters[s].dropped & ~casters[s].dropped)
+                                         for s in self.stems} if self._paper else {})
+        if self._paper is not None:
+            timings["paper"] = sum(self._paper.timings.values())
         self.timings = MappingProxyType(timings)
 
     # -- shadows -------------------------------------------------------------------------------
@@ -788,11 +786,8 @@ class Relighter:
 
     def _relit(self, sun: object, visibility: Mapping[str, np.ndarray] | None
                ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
-        """Per view ``(v', S_sun', S_sky' / S_sky, S_ind' / S_ind)``: the core of :meth:`layers`.
-
-        ``S_sun'`` (H, W, 3) float32; the sky factor (3,) float32 (``sky="paper"``) or (H, W, 3)
-        float64 (``"model"``); the indirect factor a scalar.
-        """
+        """Per view ``(v', S_sun', S_sky' / S_sky, S_ind' / S_ind)``, the core of :meth:`layers`: (H, W, 3)
+        float32; sky factor (3,) float32 (``sky="paper"``) or (H, W, 3) float64 (``"model"``); scalar."""
         direction = as_sun_direction(sun, up=self.up)
         new_vis = self.visibility_at(direction) if visibility is None else self._check_visibility(visibility)
         d32 = direction.astype(np.float32)
@@ -817,7 +812,7 @@ class Relighter:
         sun : (3,) array_like, Sun or (azimuth_deg, elevation_deg)
             The new sun (:func:`as_sun_direction`); above the horizon.
         visibility : mapping of str to (H, W) array_like, optional
-            See :meth:`layers`.
+            See :meth:`layers`. Given, the :attr:`rescued` pixels are not mixed.
         fill : {"input", "zero"}, optional
             What the pixels without an estimate (the layers hold 0 there: the sky, invalid pixels,
             pixels the decomposition took for sky) show: the view's input image (its non-finite
@@ -832,11 +827,14 @@ class Relighter:
         """
         if fill not in ("input", "zero"):
             raise ValueError(f"fill must be 'input' or 'zero', got {fill!r}")
-        if self._tasks is not None:
-            return self._render_on_cluster(sun, visibility, fill)
         direction = as_sun_direction(sun, up=self.up)
-        return {s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill, direction)
-                for s, (v_new, s_sun, sky, indirect) in self._relit(direction, visibility).items()}
+        images = self._render_on_cluster(direction, visibility, fill) if self._tasks is not None else {
+            s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill, direction)
+            for s, (v_new, s_sun, sky, indirect) in self._relit(direction, visibility).items()}
+        if self._paper is None or visibility is not None:
+            return images
+        return blend_rescued(images, self._paper.render(direction, fill=fill), self.rescued,
+                             self.config.lost_occluders.belief)
 
     def _render_on_cluster(self, sun: object, visibility: Mapping[str, np.ndarray] | None, fill: str
                            ) -> dict[str, np.ndarray]:

@@ -15,7 +15,7 @@ from conftest import look_at
 
 from mvintrinsic import Proxy
 from mvintrinsic.camera import Camera
-from mvintrinsic.photo_occupancy import OccupancyConfig, PhotoOccupancy, photo_occupancy
+from mvintrinsic.photo_occupancy import OccupancyConfig, PhotoOccupancy, blend_rescued, photo_occupancy
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import RelightConfig, Relighter, receiver_depth, receiver_points
 from mvintrinsic.results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting
@@ -143,7 +143,40 @@ def test_the_lost_poles_shadow_moves_with_the_sun(world):
     assert strict.casters["v0"].dropped[captured].all()
 
 
-@pytest.mark.parametrize(("field", "value"), [("min_views", 0), ("min_views", 2.5), ("share", 0.0), ("share", 1.5),
+def test_the_rescued_pixels_mix_the_two_hypotheses(world):
+    # OccupancyConfig.belief: at the pixels of the clusters only the photographs keep (the pole's
+    # shadow, with the 30% rule) the relit image is belief times the moved shadow plus 1 - belief
+    # times the paper's image (the cluster dropped); elsewhere the moved shadow alone.
+    true, scene, decomposition, truth = world
+    points, normals, ground = truth["v0"]
+    captured = exact_shadow(true, points, normals, ground, CAPTURE)
+
+    def relighter(belief):
+        return Relighter(decomposition, scene, config=RelightConfig(
+            blur=0.0, lost_occluders=OccupancyConfig(min_hits=0.3, belief=belief)))
+
+    mixed, moved = relighter(0.25), relighter(1.0)
+    paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0))
+    assert not moved.rescued and "paper" not in moved.timings and mixed.timings["paper"] > 0
+    assert mixed.rescued["v0"][captured].all()
+    assert not mixed.rescued["v0"][~ground].any()
+    a, b, images = moved.render(MOVED), paper.render(MOVED), mixed.render(MOVED)
+    for stem in scene.stems:
+        rescued = mixed.rescued[stem][..., None]
+        np.testing.assert_allclose(images[stem], np.where(rescued, 0.25 * a[stem] + 0.75 * b[stem], a[stem]),
+                                   rtol=1e-5, atol=1e-7)
+    # The two hypotheses differ where the pole's shadow was and where it goes.
+    assert np.abs(a["v0"] - b["v0"])[captured].mean() > 0.01
+    # A visibility given by the caller is the moved hypothesis's: no mixing.
+    given = mixed.render(MOVED, visibility=mixed.visibility_at(MOVED))
+    np.testing.assert_allclose(given["v0"], a["v0"], rtol=1e-5, atol=1e-7)
+    with pytest.raises(ValueError, match="belief"):
+        blend_rescued(a, b, mixed.rescued, 1.5)
+    with pytest.raises(ValueError, match=r"rescued\['v0'\]"):
+        blend_rescued(a, b, {"v0": np.ones((2, 2), bool)}, 0.5)
+
+
+@pytest.mark.parametrize(("field", "value"), [("min_views", 0), ("belief", -0.1), ("belief", 1.5), ("min_views", 2.5), ("share", 0.0), ("share", 1.5),
                                               ("min_hits", -0.1), ("min_hits", 1.5),
                                               ("step", 0.0), ("start", -1.0), ("max_distance", np.inf),
                                               ("depth_margin", 1.0), ("consistency", 0.0)])

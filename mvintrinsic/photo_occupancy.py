@@ -29,18 +29,21 @@ of them (``share`` 1). No view alone places a point along its own ray; the other
 parallax does.
 
 Measured (``docs/relight.md``, "Occluders the proxy lost, from the photographs";
-``benchmarks/bench_relight.py --lost-occluders``, five 480x360 scenes): with the true shadow
-layers (row (d)) the relit PSNR rises at all 22 scene-suns, by 0.83 dB on average at +-15 degrees
-(row (c) - (d) from 3.91 to 3.08 dB); with the pipeline's layers (row (e)) by 0.21 dB on average,
--0.18 to +0.54. With it a cluster must have ``min_hits`` (60%) of its rays hit instead of the
-paper's 30%: with 30%, row (e) lost up to 4.8 dB, because where the proxy has no occluder a third
-to a half of the pixels the pipeline labels shadow are lit in the truth (dark windows, a lost
-crown's own leaves, lit gaps under it), their sheets cast false shadows at the new sun and their
-reflectance, made for a shadow, is brighter than the paper's dropping leaves it in the light; a
-false shadow finds an occluder on fewer of its rays. An option, off by default: row (e) is not
-better at every scene-sun, and it adds 0.3-2.5 s per 480x360 view to the build. A solid
-occluder seen from every side in front of a surface is missed: the views that see it at the
-surface's point agree with each other, so no pixel of it looks unexplained.
+``benchmarks/bench_relight.py --lost-occluders``, five 480x360 scenes, 22 scene-suns): with the
+true shadow layers (row (d)) the relit PSNR rises at all 22, by 1.05 dB on average at +-15
+degrees (row (c) - (d) from 3.91 to 2.86 dB); with the pipeline's layers (row (e)) by 0.27 dB on
+average, -0.01 to +0.52 ((e) - (a) at +-15 degrees from 1.91 to 2.17 dB). With it a cluster must
+have ``min_hits`` (60%) of its rays hit instead of the paper's 30%: with 30%, row (e) lost up to
+4.8 dB, because where the proxy has no occluder a third to a half of the pixels the pipeline
+labels shadow are lit in the truth (dark windows, a lost crown's own leaves, lit gaps under it),
+their sheets cast false shadows at the new sun and their reflectance, made for a shadow, is
+brighter than the paper's dropping leaves it in the light; a false shadow finds an occluder on
+fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option,
+off by default: building takes 1.1-2.5 s per 480x360 view with the true layers and 1.5-3.8 s with
+the pipeline's (0.3-0.9 of it the second relighter of ``belief``) against 0.3-0.9 s without it,
+more than issue 15's 5 s per view would allow at 1000x750. A solid occluder seen from every side in front
+of a surface is missed: the views that see it at the surface's point agree with each other, so
+no pixel of it looks unexplained.
 """
 
 from __future__ import annotations
@@ -85,15 +88,16 @@ class OccupancyConfig:
         Weight of the hypothesis that a cluster kept only thanks to these distances (*rescued*:
         the paper's rule drops it) is a lost occluder's shadow; in [0, 1]. At its pixels the
         relighter renders ``belief`` times the moved shadow plus ``1 - belief`` times the paper's
-        image (the cluster dropped: brought into light, its captured darkness kept), the
-        expected image over the two hypotheses (:func:`blend_rescued`). 0.5: with the pipeline's
-        labels 52-72% of the rescued pixels were shadowed at capture (street_s0, exploratory),
-        and even with the true labels the new shadow of a crown's dappled light is not where a
-        sheet of its shadow pixels puts it. On five scenes (exploratory, then
-        ``bench_relight.py --lost-occluders``) 0.5 scored above 1 (the moved shadow alone) with
-        the true layers at 20 of 22 scene-suns (by up to 0.35 dB; -0.01 at two) and with the
-        pipeline's at 17 (-0.03 to +0.28 dB); 0.3 and 0.7 were within 0.1 dB of 0.5 at most of them, 0
-        below. 1 renders the moved shadow alone (and builds no second relighter).
+        image (the cluster dropped: brought into light, its captured darkness kept): the
+        expected image over the two hypotheses (:func:`blend_rescued`). With the pipeline's
+        labels 52-72% of the rescued pixels were shadowed at capture (street_s0, exploratory), and
+        even with the true labels the new shadow of a crown's dappled light is not where a sheet
+        of its shadow pixels puts it. 0.5 against 1 (``bench_relight.py --lost-occluders``, five
+        scenes, 22 scene-suns): row (d) above at 20 (-0.01 to +0.37 dB, mean +0.16), row (e)
+        -0.03 to +0.30 (mean +0.06), and row (e) now within 0.01 dB of the option off or above it
+        at all 22. Exploratory, on four of them: 0.7 within -0.12..+0.07 dB of 0.5 (means 0.00),
+        0.3 0.08 dB below with the true layers, 0 below at nearly all. 1: the moved shadow alone,
+        and no second relighter to build.
     min_hits : float
         With these distances the relighter keeps a shadow cluster only when at least this share
         of its sun rays hit the proxy or find an occluder here (instead of

@@ -429,6 +429,7 @@ class Relighter:
         Per view, the pixels of the clusters the paper's rule drops and ``config.lost_occluders``
         keeps, where :meth:`render` mixes the two (:attr:`OccupancyConfig.belief
         <mvintrinsic.photo_occupancy.OccupancyConfig>`); empty without the option or with belief 1.
+        :meth:`layers` and :meth:`visibility_at` give the moved shadow's hypothesis alone.
     casters : mapping of str to Caster
         Per view, after the votes of every view (``method="multiview"``) and before merging
         (``dropped``: the pixels of the dropped clusters, ``config.dropped``).

@@ -58,24 +58,16 @@ demo's path-traced relit renders (sun azimuth +15 degrees / elevation +10 degree
 99.5th percentile):
 
 * **The sun term keeps the layers' own S_sun.** The paper adjusts "the sun shading intensity
-  according to a cosine factor with respect to elevation and the horizontal plane", one factor
-  for the image; the per-pixel ``L_sun max(0, n . d')`` with the proxy's normals is its natural
-  refinement, but the layers' ``S_sun`` is not ``L_sun max(0, n . d)`` of the proxy (Step 3
-  propagates it guided by the image; the ground truth holds the true normals'), so that term
-  alone would not give the image back at the capture sun. Adding only the *change* of the
-  proxy's term keeps the identity exact and the layers' detail. With the true layers and the
-  true relit visibility: 27.02 / 26.10 with the change, 22.59 / 20.72 with
-  ``L_sun max(0, n . d')`` alone, 24.58 / 23.44 with the ratio ``S_sun max(0, n . d') / max(0,
-  n . d)``; the full pipeline 23.55 / 22.75, 20.36 / 19.18 and 22.24 / 21.40.
+  according to a cosine factor"; the layers' ``S_sun`` is not ``L_sun max(0, n . d)`` of the
+  proxy, so only the *change* of the proxy's term is added: the identity stays exact and the
+  layers' detail is kept (27.02 / 26.10 dB with the true layers and the true relit visibility,
+  against 22.59 / 20.72 for ``L_sun max(0, n . d')`` alone; ``docs/relight.md``, "Relit shading").
 * **The environment "paper" is our reading** (:func:`paper_environment_factors`). ``L_sun`` keeps
   its colour and intensity, as in the paper (Sec. 9.4); on the demo the renderer's sun is brighter
   at a higher elevation and the lit pixels at +10 degrees come out 4.6% darker (median).
-* **Default "paper" by measurement**: on the demo it scores higher than ``"model"`` in every row:
-  the full pipeline 23.55 / 22.75 against 23.45 / 22.18, the true layers with the true shadow
-  27.03 / 26.08 against 26.83 / 25.90. In the pixels in shadow in both renders ``"model"``
-  follows the azimuth change of ``S_env`` (those pixels score 27.14 against 26.88) but overshoots
-  the blue shift of the higher sun (26.25 against 26.48), and loses on the pixels lit in both
-  (29.74 against 30.16, 27.38 against 27.58; the ratios of ``S_env`` in ``docs/relight.md``).
+* **Default "paper" by measurement**: on the demo it scores higher than ``"model"`` in every row
+  (the full pipeline 23.55 / 22.75 against 23.45 / 22.18; the pixel classes in ``docs/relight.md``,
+  "Relit shading").
 * **Sky irradiance ratio, not re-integration**: ``"model"`` scales the layers' ``S_sky``, which
   holds the occlusion Step 1 traced, by the ratio of *unoccluded* sky irradiances (a ratio over
   each receiver's unoccluded directions moved row (d) by -0.02 to +0.13 dB, ``docs/relight.md``).
@@ -371,6 +363,33 @@ def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction
                        direction=direction)
 
 
+def _view_geometry(decomposition: Decomposition, scene: Scene, config: RelightConfig, tracer: Tracer, batch: int,
+                   capture: np.ndarray, timings: dict[str, float]) -> tuple:
+    """What :class:`Relighter` reads of the views before its casters (seconds added to ``timings``): the
+    proxy's vertex normals; per stem the receiver points, normals, camera-ray hits, capture cosine (Eq.
+    (1)), pixels with an estimate; the shared receivers and nearest colours (``{}`` if unneeded)."""
+    start = time.perf_counter()
+    smoothed = vertex_normals(tracer.proxy, config.normal_smoothing)
+    receivers, normals, hits, cosine, known = {}, {}, {}, {}, {}
+    for view in scene.views:
+        stem, camera = view.stem, view.camera
+        ray_hits, t, hit = _cast_pixels(camera, tracer, batch, name=f"scene (view {stem!r})")
+        receivers[stem] = _read_only(receiver_points(camera, t))
+        normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape, smoothed))
+        hits[stem] = ray_hits
+        cosine[stem] = np.maximum(normals[stem] @ capture, 0.0)  # max(0, cos w_sun), Eq. (1)
+        layers = decomposition.layers[stem]
+        known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (layers.shading > 0).any(axis=-1))
+    timings["receivers"] += time.perf_counter() - start
+    start = time.perf_counter()  # what the other views see at each receiver point
+    gains = {stem: decomposition.lighting.gain(stem) for stem in scene.stems}
+    needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
+    links = _shared_receivers(scene.views, receivers, hits) if needed else {}
+    nearest = _nearest_colour(scene.views, gains, links) if needed else {}
+    timings["consistency"] += time.perf_counter() - start
+    return smoothed, receivers, normals, hits, cosine, known, links, nearest
+
+
 class Relighter:
     """Relight every view of a decomposition under new suns (paper Sec. 8).
 
@@ -427,9 +446,8 @@ class Relighter:
         point); they keep :attr:`visibility` at every sun. Empty with ``consistency=None``.
     rescued : mapping of str to (H, W) bool
         Per view, the pixels of the clusters the paper's rule drops and ``config.lost_occluders``
-        keeps, where :meth:`render` mixes the two (:attr:`OccupancyConfig.belief
-        <mvintrinsic.photo_occupancy.OccupancyConfig>`); empty without the option or with belief 1.
-        :meth:`layers` and :meth:`visibility_at` give the moved shadow's hypothesis alone.
+        keeps, where :meth:`render` mixes the two (``OccupancyConfig.belief``; :meth:`layers` and
+        :meth:`visibility_at` give the moved shadow alone); empty without the option or belief 1.
     casters : mapping of str to Caster
         Per view, after the votes of every view (``method="multiview"``) and before merging
         (``dropped``: the pixels of the dropped clusters, ``config.dropped``).
@@ -446,9 +464,9 @@ class Relighter:
         views' :func:`build_caster`), ``votes`` (every view's lit pixels against every caster and
         the proxy), ``shadow_caster`` (merging and the BVHs), ``consistency`` (which other views'
         pixels see each receiver point, and the pixels the proxy does not explain,
-        :attr:`unexplained`), ``fusion`` (the averaging of ``config.fusion``), ``new_sun_setup`` (what every new
-        sun reuses: the completion lookups and the shading terms), with :attr:`rescued` ``paper``
-        (the paper's relighter, all its steps) and, with a ``client``,
+        :attr:`unexplained`), ``fusion`` (the averaging of ``config.fusion``), ``new_sun_setup`` (what every
+        new sun reuses: the completion lookups and the shading terms), with :attr:`rescued` ``paper``
+        (the paper's relighter: its casters on, the views' geometry shared) and, with a ``client``,
         ``scatter`` (shipping those to the workers, which build their Embree structures).
 
     Raises
@@ -462,7 +480,8 @@ class Relighter:
     """
 
     def __init__(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None = None,
-                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None) -> None:
+                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None,
+                 _geometry: tuple | None = None) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
         config = config_or_default(config, RelightConfig)
         client = _as_client(client)
@@ -482,34 +501,18 @@ class Relighter:
         self._radiance = {stem: (lighting.sun_radiance * lighting.gain(stem)).astype(np.float32)
                           for stem in decomposition.layers}
         self._batch = batch
-        timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0}
-        receivers, normals, hits, known, cosine = {}, {}, {}, {}, {}
-        start = time.perf_counter()
-        self._vertex_normals = vertex_normals(tracer.proxy, config.normal_smoothing)
-        timings["receivers"] += time.perf_counter() - start
+        timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0, "consistency": 0.0}
+        geometry = _view_geometry(decomposition, scene, config, tracer, batch, capture, timings) if _geometry is None \
+            else _geometry  # given by the relighter whose OccupancyConfig.belief needs this one
+        self._vertex_normals, receivers, normals, hits, cosine, known, links, nearest = geometry
         reflectance, visibility, casters, lit_points = {}, {}, {}, {}
-        for view in scene.views:
-            stem, camera = view.stem, view.camera
-            start = time.perf_counter()
-            ray_hits, t, hit = _cast_pixels(camera, tracer, batch, name=f"scene (view {stem!r})")
-            receivers[stem] = _read_only(receiver_points(camera, t))
-            normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape, self._vertex_normals))
-            hits[stem] = ray_hits
-            cosine[stem] = np.maximum(normals[stem] @ capture, 0.0)  # max(0, cos w_sun), Eq. (1)
-            layers = decomposition.layers[stem]  # pixels with an estimate
-            known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (layers.shading > 0).any(axis=-1))
-            timings["receivers"] += time.perf_counter() - start
-        start = time.perf_counter()  # what the other views see at each receiver point
-        gains = {stem: lighting.gain(stem) for stem in self.stems}
-        needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
-        links = _shared_receivers(scene.views, receivers, hits) if needed else {}
-        nearest = _nearest_colour(scene.views, gains, links) if needed else {}
+        start = time.perf_counter()
         occupancy, rule = None, config  # with lost_occluders (beyond the paper) its cluster rule, min_hits
         if config.lost_occluders is not None:
             occupancy = photo_occupancy(scene.views, {s: hits[s].t.reshape(known[s].shape) for s in self.stems},
                                         known, nearest, config=config.lost_occluders)
             rule = replace(config, min_proxy_hits=max(config.min_proxy_hits, config.lost_occluders.min_hits))
-        timings["consistency"] = time.perf_counter() - start
+        timings["consistency"] += time.perf_counter() - start
         for index, view in enumerate(scene.views):
             stem, camera, hit = view.stem, view.camera, hits[view.stem].hit.reshape(view.shape)
             start = time.perf_counter()
@@ -555,11 +558,9 @@ class Relighter:
 
         start = time.perf_counter()
         self.caster = merge_casters([casters[s] for s in self.stems])
-        if config.casters == "merged":
-            shared = ShadowCaster(self.caster)
-            self.shadow_casters = MappingProxyType({s: shared for s in self.stems})
-        else:
-            self.shadow_casters = MappingProxyType({s: ShadowCaster(casters[s]) for s in self.stems})
+        shared = ShadowCaster(self.caster) if config.casters == "merged" else None
+        self.shadow_casters = MappingProxyType({s: ShadowCaster(casters[s]) if shared is None else shared
+                                                for s in self.stems})
         timings["shadow_caster"] = time.perf_counter() - start
         self.excluded_primitives = _read_only(excluded)
         self.receivers = MappingProxyType(receivers)
@@ -609,13 +610,13 @@ class Relighter:
             builds = {s: (self._remote["casters"][s], self._remote["tracer"]) for s in self.stems}
             self._tasks.gather(self._tasks.submit("relight-build", _build_task, builds))
             timings["scatter"] = time.perf_counter() - start
-        lost = config.lost_occluders  # its belief < 1 (beyond the paper): the paper's relighter too
-        self._paper = None if lost is None or lost.belief == 1 else Relighter(
-            decomposition, scene, config=replace(config, lost_occluders=None), tracer=tracer, batch=batch, client=client)
-        self.rescued = MappingProxyType({s: _read_only(self._paper.casters[s].dropped & ~casters[s].dropped)
-                                         for s in self.stems} if self._paper else {})
-        if self._paper is not None:
+        self._paper, rescued = None, {}  # lost_occluders' belief < 1 (beyond the paper): the paper's relighter too
+        if config.lost_occluders is not None and config.lost_occluders.belief < 1:
+            self._paper = Relighter(decomposition, scene, config=replace(config, lost_occluders=None), tracer=tracer,
+                                    batch=batch, client=client, _geometry=geometry)
+            rescued = {s: _read_only(self._paper.casters[s].dropped & ~casters[s].dropped) for s in self.stems}
             timings["paper"] = sum(self._paper.timings.values())
+        self.rescued = MappingProxyType(rescued)
         self.timings = MappingProxyType(timings)
 
     # -- shadows -------------------------------------------------------------------------------

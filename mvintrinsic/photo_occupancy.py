@@ -49,6 +49,7 @@ other, so no pixel of it looks unexplained.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 
@@ -197,9 +198,7 @@ class PhotoOccupancy:
                 rays = active[begin:begin + chunk]
                 step = directions if directions.ndim == 1 else directions[rays][:, None, :]
                 points = (origins[rays][:, None, :] + near[None, :, None] * step).reshape(-1, 3)
-                n_occupied, n_free = self._seen(points)
-                n_occupied, n_free = n_occupied.reshape(-1, len(near)), n_free.reshape(-1, len(near))
-                good = (n_occupied >= config.min_views) & (n_occupied >= config.share * (n_occupied + n_free))
+                good = self._good(points).reshape(-1, len(near))
                 found = good.any(axis=1)
                 out[rays[found]] = near[np.argmax(good[found], axis=1)]
             active = active[np.isinf(out[active])]
@@ -207,20 +206,47 @@ class PhotoOccupancy:
                 break
         return out
 
-    def _seen(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """How many views see each point (M, 3) occupied and free, two (M,) int16."""
+    @functools.cached_property
+    def _lookup(self) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+        """Per view, flat (H*W,) int8 state (1 occupied, 2 free, 0 neither) and float64 squared
+        distance under which a point is in front of the proxy surface (-1 where the state is 0)."""
+        keep = 1.0 - self.config.depth_margin
+        out = []
+        for depth, occupied, free in zip(self.depth, self.occupied, self.free, strict=True):
+            state = np.where(occupied, 1, np.where(free, 2, 0)).astype(np.int8).ravel()
+            out.append((state, np.where(state > 0, (keep * depth.ravel()) ** 2, -1.0)))
+        return tuple(out)
+
+    def _good(self, points: np.ndarray) -> np.ndarray:
+        """Whether each point (M, 3) is seen occupied by at least ``min_views`` views and by at
+        least ``share`` of those that see it occupied or free, (M,) bool.
+
+        The views are counted one after the other; a point stops being projected once even the
+        remaining views all seeing it occupied could not make it count (exact: 3-4x fewer
+        projections on street_s0, where most samples are seen free early).
+        """
+        config = self.config
         n_occupied = np.zeros(len(points), np.int16)
         n_free = np.zeros(len(points), np.int16)
-        for k, camera in enumerate(self.cameras):
-            pixels, z = camera.project(points)
-            inside = np.flatnonzero((z > 0) & camera.in_image(pixels))
-            i = np.floor(pixels[inside, 0]).astype(np.int64)
-            j = np.floor(pixels[inside, 1]).astype(np.int64)
-            distance = np.linalg.norm(points[inside] - camera.center, axis=1)
-            visible = distance < (1.0 - self.config.depth_margin) * self.depth[k][j, i]
-            n_occupied[inside] += visible & self.occupied[k][j, i]
-            n_free[inside] += visible & self.free[k][j, i]
-        return n_occupied, n_free
+        alive = np.arange(len(points))
+        for done, (camera, (state, limit)) in enumerate(zip(self.cameras, self._lookup, strict=True), 1):
+            local = camera.world_to_camera(points[alive])  # its norm: the distance to the camera centre
+            front = np.flatnonzero(local[:, 2] > 0)
+            pixels = camera.normalized_to_pixels(local[front, :2] / local[front, 2:])
+            inside = camera.in_image(pixels)
+            front, pixels = front[inside], pixels[inside]
+            flat = np.floor(pixels[:, 1]).astype(np.int64) * camera.width + np.floor(pixels[:, 0]).astype(np.int64)
+            near = local[front]
+            seen = np.where(np.einsum("ij,ij->i", near, near) < limit[flat], state[flat], 0)
+            n_occupied[alive[front]] += seen == 1
+            n_free[alive[front]] += seen == 2
+            best = n_occupied[alive] + (len(self.cameras) - done)  # every view still to come seeing it occupied
+            alive = alive[(best >= config.min_views) & (best >= config.share * (best + n_free[alive]))]
+            if not len(alive):
+                break
+        good = np.zeros(len(points), dtype=bool)
+        good[alive] = True
+        return good
 
     def sun_ray_distance(self, index: int, receivers: np.ndarray) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
         """The ``occluder_distance`` of :func:`~mvintrinsic.caster.build_caster` for view ``index``.

@@ -80,6 +80,21 @@ def test_unprojection_matches_pycolmap_and_round_trips(model):
     np.testing.assert_allclose(back, pixels, atol=1e-6)
 
 
+@pytest.mark.parametrize("model, params", [("PINHOLE", [150.0, 140.0, 80.0, 60.0]), ("SIMPLE_PINHOLE", [150.0, 80.0, 60.0]),
+                                           ("OPENCV", [150.0, 140.0, 80.0, 60.0, 0, 0, 0, 0])])
+def test_undistorted_cameras_give_colmaps_numbers_exactly(model, params):
+    """Without distortion the projection skips pycolmap (``K`` alone) and must not change a digit."""
+    camera = Camera(model, 160, 120, params, *random_pose(np.random.default_rng(3)))
+    assert not camera.is_distorted
+    xy = np.random.default_rng(4).normal(size=(5000, 2))
+    xy[::17] = np.nan
+    colmap = colmap_camera(camera)
+    expected = colmap.img_from_cam(np.column_stack([xy, np.ones(len(xy))]))[:, :2]
+    np.testing.assert_array_equal(camera.normalized_to_pixels(xy), expected)
+    pixels = np.random.default_rng(5).uniform(-50.0, 250.0, size=(5000, 2))
+    np.testing.assert_array_equal(camera.pixels_to_normalized(pixels), colmap.cam_from_img(pixels)[:, :2])
+
+
 def test_pixel_centres_follow_colmap_convention():
     camera = Camera("PINHOLE", 4, 3, [2.0, 2.0, 2.0, 1.5], np.eye(3), np.zeros(3))
     centres = camera.pixel_centers()

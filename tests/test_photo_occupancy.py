@@ -117,6 +117,33 @@ def test_the_views_place_the_lost_pole_along_a_ray(world):
     assert np.isinf(occupancy.first_occupied(np.array([[4.0, -4.0, 0.0]]), CAPTURE)).all()
 
 
+@pytest.mark.parametrize("min_views, share", [(4, 1.0), (2, 0.7), (1, 0.5), (6, 1.0)])
+def test_the_samples_follow_the_counting_rule(world, min_views, share):
+    """The occupancy search stops projecting a sample once it cannot count: the same samples as
+    counting every view (the rule written out here)."""
+    _, scene, _, truth = world
+    proxy = Tracer(scene.proxy)
+    depth = {v.stem: proxy.intersect(v.camera.center, v.camera.pixel_rays()).t.reshape(H, W) for v in scene.views}
+    known = {v.stem: np.isfinite(depth[v.stem]) for v in scene.views}
+    colour = {v.stem: np.where(truth[v.stem][2], 0.0, np.where(known[v.stem], 1.0, np.inf)) for v in scene.views}
+    config = OccupancyConfig(min_views=min_views, share=share)
+    occupancy = photo_occupancy(scene.views, depth, known, colour, config=config)
+    points = np.random.default_rng(0).uniform([-2.0, -1.0, -0.5], [2.0, 3.0, 4.0], size=(20000, 3))
+    n_occupied, n_free = np.zeros(len(points), int), np.zeros(len(points), int)
+    for k, view in enumerate(scene.views):
+        surface = np.where(np.isfinite(depth[view.stem]), depth[view.stem], np.inf)
+        pixels, z = view.camera.project(points)
+        inside = (z > 0) & view.camera.in_image(pixels)
+        i, j = np.floor(pixels[inside]).astype(int).T
+        distance = np.linalg.norm(points[inside] - view.camera.center, axis=1)
+        front = distance < (1.0 - config.depth_margin) * surface[j, i]
+        n_occupied[inside] += front & occupancy.occupied[k][j, i]
+        n_free[inside] += front & occupancy.free[k][j, i]
+    expected = (n_occupied >= min_views) & (n_occupied >= share * (n_occupied + n_free))
+    assert 50 < expected.sum() < len(points) - 50  # both outcomes present
+    np.testing.assert_array_equal(occupancy._good(points), expected)
+
+
 def test_the_lost_poles_shadow_moves_with_the_sun(world):
     true, scene, decomposition, truth = world
     paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0))

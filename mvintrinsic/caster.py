@@ -65,9 +65,7 @@ scenes with MVS-like proxies (``docs/relight.md`` gives every figure):
   than ``completion_distance`` (0.6 m) along the new sun ray complete nothing: a noisy proxy
   shades itself there when the sun turns, while the true short-range shadows are the caster's;
   an exact proxy does not, and ``completion_distance="auto"`` (default) measures which
-  (:func:`choose_completion_distance`). On courtyard_s1 with the true layers, relit PSNR
-  at azimuth +15 degrees: 20.28 dB with the paper's checks, 21.15 with every view's votes but no
-  completion distance, 23.19 with both (the input unchanged: 21.32).
+  (:func:`choose_completion_distance`).
 * **Each view keeps its own caster** (``casters="own"``, as the paper): the union of all views'
   measured 0.6-3.1 dB lower with the true layers on courtyard_s1 (other views' sheets, lifted
   from receivers misplaced under lost foliage, shade the view's lit pixels): an option.
@@ -94,7 +92,7 @@ from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
 from .results import SHADOW_LABELS
 
-__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "merge_casters", "remove_contradicted", "shadow_pixels"]
+__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
 
 #: 8-connectivity of the shadow clusters.
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -584,10 +582,9 @@ def build_caster(
     """Build the shadow caster of one view from its shadow pixels (paper Sec. 8, Fig. 9).
 
     Steps (module docstring): sun rays from the shadow pixels' receiver points against the proxy;
-    8-connected clusters dropped when smaller than ``config.min_cluster`` pixels or with a share
-    of proxy hits below ``config.min_proxy_hits``; missed distances filled from the nearest kept
-    pixel that hit; a quad of two triangles over every kept pixel's footprint, lifted toward the
-    sun; triangles first hit by more than ``config.epsilon`` sun rays from lit pixels removed.
+    the clusters :func:`kept_clusters` keeps; missed distances filled from the nearest kept pixel
+    that hit; a quad over every kept pixel's footprint, lifted toward the sun; triangles first hit
+    by more than ``config.epsilon`` sun rays from lit pixels removed.
 
     Parameters
     ----------
@@ -644,22 +641,12 @@ def build_caster(
         t = np.where(miss, occluder_distance(miss, sun), t)
     hit = np.isfinite(t)
 
-    # 8-connected clusters; drop the small ones and those the proxy does not explain.
-    clusters, n_clusters = ndimage.label(shadow, structure=_EIGHT)
-    size = np.bincount(clusters.ravel(), minlength=n_clusters + 1)
-    n_hits = np.bincount(clusters.ravel(), weights=hit.ravel(), minlength=n_clusters + 1)
-    share = n_hits / np.maximum(size, 1)
-    small = size < config.min_cluster
-    unsupported = ~small & ((share < config.min_proxy_hits) | (n_hits == 0))
-    keep = ~(small | unsupported)
-    keep[0] = small[0] = unsupported[0] = False  # label 0 is the background
-    kept = keep[clusters]
+    kept, *counts = kept_clusters(shadow, hit, config.min_cluster, config.min_proxy_hits)  # n_clusters, small, unsupported
     dropped = shadow & ~kept
     primitives = np.unique(hits.triangle[kept[rows, cols] & hits.hit])
 
     if not kept.any():
-        return Caster(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), primitives, kept, dropped,
-                      n_clusters, int(small[1:].sum()), int(unsupported[1:].sum()), 0)
+        return Caster(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), primitives, kept, dropped, *counts, 0)
 
     # Missed rays take the distance of the nearest kept pixel whose ray hit.
     valid = kept & hit
@@ -670,9 +657,22 @@ def build_caster(
     vertices, triangles = _footprint_mesh(camera, kept, ray_distance, lift, sun)
 
     # Triangles first hit by more than epsilon sun rays from lit pixels contradict the image.
-    caster = Caster(vertices, triangles, primitives, kept, dropped, n_clusters, int(small[1:].sum()),
-                    int(unsupported[1:].sum()), 0)
+    caster = Caster(vertices, triangles, primitives, kept, dropped, *counts, 0)
     return remove_contradicted(caster, [receiver[lit]], sun, config=config, batch=batch)
+
+
+def kept_clusters(shadow: np.ndarray, hit: np.ndarray, min_cluster: int, min_share: float
+                  ) -> tuple[np.ndarray, int, int, int]:
+    """The paper's cluster rule (Sec. 8): the pixels, (H, W) bool, of the 8-connected clusters of ``shadow``
+    with >= ``min_cluster`` pixels and >= ``min_share`` (and one) ``hit``; the counts of clusters, small, unsupported."""
+    clusters, n_clusters = ndimage.label(shadow, structure=_EIGHT)
+    size = np.bincount(clusters.ravel(), minlength=n_clusters + 1)
+    n_hits = np.bincount(clusters.ravel(), weights=hit.ravel(), minlength=n_clusters + 1)
+    small = size < min_cluster
+    unsupported = ~small & ((n_hits / np.maximum(size, 1) < min_share) | (n_hits == 0))
+    small[0] = unsupported[0] = False  # label 0 is the background
+    keep = ~(small | unsupported) & (np.arange(n_clusters + 1) > 0)
+    return keep[clusters], n_clusters, int(small.sum()), int(unsupported.sum())
 
 
 def _first_hit_counts(vertices: np.ndarray, triangles: np.ndarray, points: Sequence[np.ndarray],

@@ -148,13 +148,14 @@ from .caster import (
     build_caster,
     capture_first_hits,
     contradicted_primitives,
+    kept_clusters,
     merge_casters,
     remove_contradicted,
     shadow_pixels,
 )
-from .photo_occupancy import blend_rescued, photo_occupancy
+from .photo_occupancy import _PaperPixels, blend_rescued, photo_occupancy
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, Tracer, vertex_normals
+from .raytrace import DEFAULT_BATCH, Tracer
 from .raytrace import sun_visibility as proxy_vertex_visibility
 from .relit_shading import (
     NORMAL_GRID_HEIGHT,
@@ -162,9 +163,11 @@ from .relit_shading import (
     SKY_GRID_HEIGHT,
     SKY_RATIO_FLOOR,
     _grid_ratio,
+    _into_light,
     _sky_irradiance_grid,
     _SkyPixels,
     _SphereLookup,
+    _sun_terms,
     paper_environment_factors,
     sky_irradiance_ratio,
     sky_pixel_factors,
@@ -173,13 +176,11 @@ from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene
 from .shadow_caster import (
     ShadowCaster,
-    _cast_pixels,
     _fuse,
     _fusion_matrices,
-    _nearest_colour,
-    _pixel_normals,
-    _shared_receivers,
+    _read_only,
     _unexplained_pixels,
+    _view_geometry,
     as_sun_direction,
     receiver_depth,
     receiver_normals,
@@ -210,11 +211,6 @@ def _check_decomposition(decomposition: object, scene: object) -> tuple[Decompos
             raise ValueError(f"decomposition: the layers of view {view.stem!r} are {shape[1]}x{shape[0]} pixels, "
                              f"the view is {view.shape[1]}x{view.shape[0]}")
     return decomposition, scene
-
-
-def _read_only(array: np.ndarray) -> np.ndarray:
-    array.flags.writeable = False
-    return array
 
 
 class _NewSun:
@@ -363,33 +359,6 @@ def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction
                        direction=direction)
 
 
-def _view_geometry(decomposition: Decomposition, scene: Scene, config: RelightConfig, tracer: Tracer, batch: int,
-                   capture: np.ndarray, timings: dict[str, float]) -> tuple:
-    """What :class:`Relighter` reads of the views before its casters (seconds added to ``timings``): the
-    proxy's vertex normals; per stem the receiver points, normals, camera-ray hits, capture cosine (Eq.
-    (1)), pixels with an estimate; the shared receivers and nearest colours (``{}`` if unneeded)."""
-    start = time.perf_counter()
-    smoothed = vertex_normals(tracer.proxy, config.normal_smoothing)
-    receivers, normals, hits, cosine, known = {}, {}, {}, {}, {}
-    for view in scene.views:
-        stem, camera = view.stem, view.camera
-        ray_hits, t, hit = _cast_pixels(camera, tracer, batch, name=f"scene (view {stem!r})")
-        receivers[stem] = _read_only(receiver_points(camera, t))
-        normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape, smoothed))
-        hits[stem] = ray_hits
-        cosine[stem] = np.maximum(normals[stem] @ capture, 0.0)  # max(0, cos w_sun), Eq. (1)
-        layers = decomposition.layers[stem]
-        known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (layers.shading > 0).any(axis=-1))
-    timings["receivers"] += time.perf_counter() - start
-    start = time.perf_counter()  # what the other views see at each receiver point
-    gains = {stem: decomposition.lighting.gain(stem) for stem in scene.stems}
-    needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
-    links = _shared_receivers(scene.views, receivers, hits) if needed else {}
-    nearest = _nearest_colour(scene.views, gains, links) if needed else {}
-    timings["consistency"] += time.perf_counter() - start
-    return smoothed, receivers, normals, hits, cosine, known, links, nearest
-
-
 class Relighter:
     """Relight every view of a decomposition under new suns (paper Sec. 8).
 
@@ -480,8 +449,7 @@ class Relighter:
     """
 
     def __init__(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None = None,
-                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None,
-                 _geometry: tuple | None = None) -> None:
+                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
         config = config_or_default(config, RelightConfig)
         client = _as_client(client)
@@ -502,10 +470,9 @@ class Relighter:
                           for stem in decomposition.layers}
         self._batch = batch
         timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0, "consistency": 0.0}
-        geometry = _view_geometry(decomposition, scene, config, tracer, batch, capture, timings) if _geometry is None \
-            else _geometry  # given by the relighter whose OccupancyConfig.belief needs this one
-        self._vertex_normals, receivers, normals, hits, cosine, known, links, nearest = geometry
-        reflectance, visibility, casters, lit_points = {}, {}, {}, {}
+        self._vertex_normals, receivers, normals, hits, cosine, known, links, nearest = _view_geometry(
+            decomposition, scene, config, tracer, batch, capture, timings)
+        reflectance, visibility, casters, lit_points, rescued = {}, {}, {}, {}, {}
         start = time.perf_counter()
         occupancy, rule = None, config  # with lost_occluders (beyond the paper) its cluster rule, min_hits
         if config.lost_occluders is not None:
@@ -521,22 +488,20 @@ class Relighter:
             shadow = shadow_pixels(labels, layers.visibility, tau_s=config.tau_s)
             lit = hit & ~shadow & (labels == SHADOW_LABELS["lit"])
             lit_points[stem] = receivers[stem][lit]
-            distance = None if occupancy is None else occupancy.sun_ray_distance(index, receivers[stem])
+            missed = np.zeros(view.shape, dtype=bool)  # shadow pixels whose sun ray misses the proxy
+            distance = None if occupancy is None else occupancy.sun_ray_distance(index, receivers[stem], asked=missed)
             casters[stem] = build_caster(camera, shadow, receivers[stem], capture, tracer, lit=lit, up=up,
                                          config=rule, batch=batch, occluder_distance=distance)
             timings["casters"] += time.perf_counter() - start
-            shading = layers.shading.astype(np.float64)
             r, v = layers.reflectance, layers.visibility
             dropped = casters[stem].dropped
             if config.dropped == "light" and dropped.any():
-                # Sec. 8: "We adjust the reflectance of such pixels to bring them in light using the
-                # v_sun layer": v_sun = 1 and R = I / (S_sun + S_sky + S_ind), I = R S_tot (Eq. 2).
-                in_light = layers.sun_shading.astype(np.float64) + layers.env_shading
-                ok = dropped[..., None] & (in_light > 0)
-                r = np.where(ok, r * shading / np.where(ok, in_light, 1.0), r).astype(np.float32)
-                v = np.where(dropped, np.float32(1.0), v)
+                r, v = _into_light(layers, r, v, dropped)
             reflectance[stem] = _read_only(np.array(r, dtype=np.float32))
             visibility[stem] = _read_only(np.array(v, dtype=np.float32))
+            if occupancy is not None and config.lost_occluders.belief < 1:  # kept, and dropped by the paper's rule
+                rescued[stem] = casters[stem].shadow & ~kept_clusters(shadow, shadow & ~missed, config.min_cluster,
+                                                                      config.min_proxy_hits)[0]
 
         start = time.perf_counter()
         excluded = np.zeros(0, dtype=np.int64)
@@ -610,13 +575,11 @@ class Relighter:
             builds = {s: (self._remote["casters"][s], self._remote["tracer"]) for s in self.stems}
             self._tasks.gather(self._tasks.submit("relight-build", _build_task, builds))
             timings["scatter"] = time.perf_counter() - start
-        self._paper, rescued = None, {}  # lost_occluders' belief < 1 (beyond the paper): the paper's relighter too
-        if config.lost_occluders is not None and config.lost_occluders.belief < 1:
-            self._paper = Relighter(decomposition, scene, config=replace(config, lost_occluders=None), tracer=tracer,
-                                    batch=batch, client=client, _geometry=geometry)
-            rescued = {s: _read_only(self._paper.casters[s].dropped & ~casters[s].dropped) for s in self.stems}
-            timings["paper"] = sum(self._paper.timings.values())
-        self.rescued = MappingProxyType(rescued)
+        start = time.perf_counter()  # lost_occluders' belief < 1 (beyond the paper): the paper's image there
+        self.rescued = MappingProxyType({s: _read_only(m) for s, m in rescued.items() if m.any()})
+        self._paper = {s: self._paper_pixels(s, m, cosine[s]) for s, m in self.rescued.items()}
+        if rescued:
+            timings["rescued"] = time.perf_counter() - start
         self.timings = MappingProxyType(timings)
 
     # -- shadows -------------------------------------------------------------------------------
@@ -715,7 +678,7 @@ class Relighter:
             lacks a view or has the wrong shape or range.
         """
         out = {}
-        for stem, (v_new, s_sun, sky, indirect) in self._relit(sun, visibility).items():
+        for stem, (v_new, s_sun, sky, indirect) in self._relit(sun, visibility)[0].items():
             layers = self.decomposition.layers[stem]
             labels = np.where(v_new >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
             labels[~self._known[stem]] = SHADOW_LABELS["undecided"]
@@ -730,6 +693,22 @@ class Relighter:
             )
         return out
 
+    def _paper_pixels(self, stem: str, rescued: np.ndarray, cosine: np.ndarray) -> _PaperPixels:
+        """The paper's hypothesis at a view's :attr:`rescued` pixels: the cluster dropped as ``config.dropped``
+        says, ``v'`` 1 there (capture ``v`` where :attr:`unexplained` or ``"static"``)."""
+        layers, config = self.decomposition.layers[stem], self.config
+        r, v = layers.reflectance, layers.visibility
+        if config.dropped == "light":
+            r, v = _into_light(layers, r, v, rescued)
+        base, floor = _sun_terms(layers.sun_shading[rescued].astype(np.float64),
+                                 self._radiance[stem].astype(np.float64), cosine[rescued], v[rescued])
+        keep = self.unexplained[stem][rescued] if stem in self.unexplained else np.zeros(int(rescued.sum()), bool)
+        normals = self.normals[stem][rescued]
+        return _PaperPixels(np.flatnonzero(rescued), r[rescued], base, floor, normals.astype(np.float32),
+                            layers.sky_shading[rescued], layers.indirect_shading[rescued], self._radiance[stem],
+                            np.where(keep | (config.dropped == "static"), v[rescued], 1.0).astype(np.float32),
+                            _SphereLookup(normals, NORMAL_GRID_HEIGHT, self.up) if config.sky == "model" else None)
+
     def _prepare_new_sun(self, stem: str, cosine: np.ndarray, excluded: np.ndarray) -> _NewSun:
         """The sun-independent inputs of a new sun of one view, float32, once (module docstring).
 
@@ -738,13 +717,9 @@ class Relighter:
         the floor do not depend on the new sun ``d'``.
         """
         config = self.config
-        radiance = self._radiance[stem].astype(np.float64)
         layers = self.decomposition.layers[stem]
-        s_sun = layers.sun_shading.astype(np.float64)
-        saw_sun = (self.visibility[stem] > 0)[..., None]
-        # In full shadow base 0 and floor -inf leave L_sun max(0, n.d') alone.
-        base = np.where(saw_sun, s_sun - radiance * cosine[..., None], 0.0).astype(np.float32)
-        floor = np.where(saw_sun, np.minimum(s_sun, 0.0), -np.inf).astype(np.float32)
+        base, floor = _sun_terms(layers.sun_shading.astype(np.float64), self._radiance[stem].astype(np.float64),
+                                 cosine, self.visibility[stem])
         unknown = ~self._known[stem][..., None]
         image = self.scene.view(stem).image
         fill = np.where(unknown, np.nan_to_num(image, nan=0.0, posinf=0.0, neginf=0.0), 0.0).astype(np.float32)
@@ -787,9 +762,10 @@ class Relighter:
         return float(irradiance / self._sun_irradiance if self._sun_irradiance > 0 else 1.0)
 
     def _relit(self, sun: object, visibility: Mapping[str, np.ndarray] | None
-               ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]]:
+               ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]], tuple[str, np.ndarray], float]:
         """Per view ``(v', S_sun', S_sky' / S_sky, S_ind' / S_ind)``, the core of :meth:`layers`: (H, W, 3)
-        float32; sky factor (3,) float32 (``sky="paper"``) or (H, W, 3) float64 (``"model"``); scalar."""
+        float32; sky factor (3,) float32 (``sky="paper"``) or (H, W, 3) float64 (``"model"``); scalar. And the
+        environment's change (:meth:`_environment`) and ``S_ind' / S_ind``."""
         direction = as_sun_direction(sun, up=self.up)
         new_vis = self.visibility_at(direction) if visibility is None else self._check_visibility(visibility)
         d32 = direction.astype(np.float32)
@@ -800,7 +776,7 @@ class Relighter:
                 sum(self._new_sun[s].irradiance(new_cosine[s], new_vis[s]) for s in self.stems))
         return {s: (new_vis[s], self._new_sun[s].sun_shading(new_cosine[s]), self._new_sun[s].sky_factor(environment),
                     indirect_factor)
-                for s in self.stems}
+                for s in self.stems}, environment, indirect_factor
 
     def render(self, sun: object, *, visibility: Mapping[str, np.ndarray] | None = None,
                fill: str = "input") -> dict[str, np.ndarray]:
@@ -830,17 +806,22 @@ class Relighter:
         if fill not in ("input", "zero"):
             raise ValueError(f"fill must be 'input' or 'zero', got {fill!r}")
         direction = as_sun_direction(sun, up=self.up)
-        images = self._render_on_cluster(direction, visibility, fill) if self._tasks is not None else {
-            s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill, direction)
-            for s, (v_new, s_sun, sky, indirect) in self._relit(direction, visibility).items()}
-        if self._paper is None or visibility is not None:
+        if self._tasks is not None:
+            images, environment, indirect_factor = self._render_on_cluster(direction, visibility, fill)
+        else:
+            relit, environment, indirect_factor = self._relit(direction, visibility)
+            images = {s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill, direction)
+                      for s, (v_new, s_sun, sky, indirect) in relit.items()}
+        if not self._paper or visibility is not None:
             return images
-        return blend_rescued(images, self._paper.render(direction, fill=fill), self.rescued,
-                             self.config.lost_occluders.belief)
+        d32 = direction.astype(np.float32)
+        return blend_rescued(images, {s: paper(d32, environment, indirect_factor) for s, paper in self._paper.items()},
+                             self.rescued, self.config.lost_occluders.belief)
 
     def _render_on_cluster(self, sun: object, visibility: Mapping[str, np.ndarray] | None, fill: str
-                           ) -> dict[str, np.ndarray]:
-        """:meth:`render` as one task per view on the client's cluster (the same per-view steps as :meth:`_relit`)."""
+                           ) -> tuple[dict[str, np.ndarray], tuple[str, np.ndarray], float]:
+        """:meth:`render` as one task per view on the client's cluster (the same per-view steps as :meth:`_relit`);
+        with the environment's change and ``S_ind' / S_ind``."""
         tasks, remote = self._tasks, self._remote
         direction = as_sun_direction(sun, up=self.up)
         shadow_sun = as_sun_direction(direction, up=self.up)  # as visibility_at receives it in _relit
@@ -863,7 +844,7 @@ class Relighter:
             futures = tasks.submit("relight", _image_task, {s: (remote["new_sun"][s], terms[s]) for s in self.stems},
                                    environment=environment, indirect_factor=indirect_factor, fill=fill,
                                    direction=direction)
-        return tasks.gather(futures)
+        return tasks.gather(futures), environment, indirect_factor
 
     def __repr__(self) -> str:
         return f"Relighter({len(self.stems)} views, sky={self.config.sky!r}, {self.caster!r})"

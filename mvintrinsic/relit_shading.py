@@ -25,6 +25,7 @@ References
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -33,6 +34,9 @@ from .caster import _check_sun
 from .envmap import envmap_directions, horizontal_frame, texel_solid_angles
 from .image_model import LUMINANCE_WEIGHTS
 from .skymodel import preetham_relative_rgb
+
+if TYPE_CHECKING:
+    from .results import IntrinsicLayers
 
 __all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "SKY_GRID_HEIGHT", "SKY_RATIO_FLOOR", "paper_environment_factors", "sky_irradiance_ratio",
            "sky_pixel_factors"]
@@ -304,3 +308,21 @@ class _SkyPixels:
 # ---------------------------------------------------------------------------------------------
 # relighting
 # ---------------------------------------------------------------------------------------------
+
+
+def _sun_terms(s_sun: np.ndarray, radiance: np.ndarray, cosine: np.ndarray, visibility: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """``S_sun' = max(base + L_sun max(0, n.d'), floor)``: ``base`` and ``floor``, float32 like ``s_sun`` (..., 3)
+    (:class:`~mvintrinsic.relight.Relighter`); in full shadow (``visibility`` 0) 0 and -inf leave ``L_sun max(0, n.d')``."""
+    saw_sun = (visibility > 0)[..., None]
+    base = np.where(saw_sun, s_sun - radiance * cosine[..., None], 0.0).astype(np.float32)
+    return base, np.where(saw_sun, np.minimum(s_sun, 0.0), -np.inf).astype(np.float32)
+
+
+def _into_light(layers: IntrinsicLayers, r: np.ndarray, v: np.ndarray, pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sec. 8: "We adjust the reflectance of such pixels to bring them in light using the v_sun layer":
+    at ``pixels`` (H, W) bool v_sun = 1 and R = I / (S_sun + S_sky + S_ind), I = R S_tot (Eq. 2); float32."""
+    in_light = layers.sun_shading.astype(np.float64) + layers.env_shading
+    ok = pixels[..., None] & (in_light > 0)
+    r = np.where(ok, r * layers.shading.astype(np.float64) / np.where(ok, in_light, 1.0), r).astype(np.float32)
+    return r, np.where(pixels, np.float32(1.0), v).astype(np.float32)

@@ -75,6 +75,7 @@ References
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
@@ -88,7 +89,8 @@ from .envmap import horizontal_frame
 from .photo_occupancy import unexplained_pixels
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, RayHits, Tracer, triangle_scene, vertex_normals
-from .scene import Sun, View
+from .results import Decomposition
+from .scene import Scene, Sun, View
 
 __all__ = ["ShadowCaster", "as_sun_direction", "receiver_depth", "receiver_normals", "receiver_points"]
 
@@ -594,3 +596,35 @@ def _fuse(fusion: Mapping[str, sparse.csr_matrix], visibility: Mapping[str, np.n
     stacked = np.concatenate([np.asarray(visibility[s], np.float32).ravel() for s in fusion])
     return {s: np.clip(fusion[s] @ stacked, 0.0, 1.0).astype(np.float32).reshape(np.shape(visibility[s]))
             for s in fusion}
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+    array.flags.writeable = False
+    return array
+
+
+def _view_geometry(decomposition: Decomposition, scene: Scene, config: RelightConfig, tracer: Tracer, batch: int,
+                   capture: np.ndarray, timings: dict[str, float]) -> tuple:
+    """What :class:`~mvintrinsic.relight.Relighter` reads of the views before its casters (seconds added to ``timings``): the
+    proxy's vertex normals; per stem the receiver points, normals, camera-ray hits, capture cosine (Eq.
+    (1)), pixels with an estimate; the shared receivers and nearest colours (``{}`` if unneeded)."""
+    start = time.perf_counter()
+    smoothed = vertex_normals(tracer.proxy, config.normal_smoothing)
+    receivers, normals, hits, cosine, known = {}, {}, {}, {}, {}
+    for view in scene.views:
+        stem, camera = view.stem, view.camera
+        ray_hits, t, hit = _cast_pixels(camera, tracer, batch, name=f"scene (view {stem!r})")
+        receivers[stem] = _read_only(receiver_points(camera, t))
+        normals[stem] = _read_only(_pixel_normals(tracer, ray_hits, camera.shape, smoothed))
+        hits[stem] = ray_hits
+        cosine[stem] = np.maximum(normals[stem] @ capture, 0.0)  # max(0, cos w_sun), Eq. (1)
+        layers = decomposition.layers[stem]
+        known[stem] = _read_only((layers.reflectance > 0).any(axis=-1) | (layers.shading > 0).any(axis=-1))
+    timings["receivers"] += time.perf_counter() - start
+    start = time.perf_counter()  # what the other views see at each receiver point
+    gains = {stem: decomposition.lighting.gain(stem) for stem in scene.stems}
+    needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
+    links = _shared_receivers(scene.views, receivers, hits) if needed else {}
+    nearest = _nearest_colour(scene.views, gains, links) if needed else {}
+    timings["consistency"] += time.perf_counter() - start
+    return smoothed, receivers, normals, hits, cosine, known, links, nearest

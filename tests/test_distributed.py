@@ -18,6 +18,7 @@ import pytest
 from mvintrinsic import Config, Scene, decompose, load_scene
 from mvintrinsic.cli import demo_scene_path, main
 from mvintrinsic.env_shading import Step1Config
+from mvintrinsic.photo_occupancy import OccupancyConfig
 from mvintrinsic.relight import RelightConfig, Relighter, relight
 
 #: Step 1 with few rays: identity does not depend on Step 1's accuracy, and the test stays fast.
@@ -92,8 +93,9 @@ def test_decompose_on_a_cluster_is_identical_to_the_serial_run(scene, serial, cl
     assert len({worker for _, worker in ran}) == 2
 
 
-@pytest.mark.parametrize("config", [RelightConfig(), RelightConfig(sky="model"), RelightConfig(casters="merged")],
-                         ids=["paper-sky", "model-sky", "merged"])
+@pytest.mark.parametrize("config", [RelightConfig(), RelightConfig(sky="model"), RelightConfig(casters="merged"),
+                                    RelightConfig(sky="model", lost_occluders=OccupancyConfig(min_views=2, min_hits=0.3))],
+                         ids=["paper-sky", "model-sky", "merged", "lost-occluders"])
 def test_relighting_on_a_cluster_is_identical(scene, serial, client, config):
     result = serial["default"]
     here = Relighter(result, scene, config=config)
@@ -107,6 +109,8 @@ def test_relighting_on_a_cluster_is_identical(scene, serial, client, config):
     expected = here.render(result.lighting.sun, visibility=here.visibility, fill="zero")
     got = there.render(result.lighting.sun, visibility=here.visibility, fill="zero")
     assert all(np.array_equal(got[s], expected[s]) for s in expected)
+    if config.lost_occluders is not None:  # the rescued pixels mix the paper's image, here as there
+        assert here.rescued and set(here.rescued) == set(there.rescued)
     if config == RelightConfig():
         got = relight(result, scene, sun=(15.0, 40.0), client=client)
         assert all(np.array_equal(got[s], here.render((15.0, 40.0))[s]) for s in got)

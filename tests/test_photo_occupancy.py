@@ -184,7 +184,7 @@ def test_the_rescued_pixels_mix_the_two_hypotheses(world):
 
     mixed, moved = relighter(0.25), relighter(1.0)
     paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0))
-    assert not moved.rescued and "paper" not in moved.timings and mixed.timings["paper"] > 0
+    assert not moved.rescued and "rescued" not in moved.timings and mixed.timings["rescued"] > 0
     assert mixed.rescued["v0"][captured].all()
     assert not mixed.rescued["v0"][~ground].any()
     a, b, images = moved.render(MOVED), paper.render(MOVED), mixed.render(MOVED)

@@ -38,11 +38,10 @@ have ``min_hits`` (60%) of its rays hit instead of the paper's 30%: with 30%, ro
 labels shadow are lit in the truth (dark windows, a lost crown's own leaves, lit gaps under it),
 their sheets cast false shadows at the new sun and their reflectance, made for a shadow, is
 brighter than the paper's dropping leaves it in the light; a false shadow finds an occluder on
-fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option,
-off by default: building takes 1.1-2.5 s per 480x360 view with the true layers and 1.5-3.8 s with
-the pipeline's (0.3-0.9 of it the second relighter of ``belief``; 0.24-0.56 s less on street_s0
-and demo_480 since it shares the first one's view geometry) against 0.3-0.9 s without it,
-more than issue 15's 5 s per view would allow at 1000x750. A solid occluder seen from every side
+fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). Building takes
+0.5-1.3 s per 480x360 view with the true layers and 0.5-1.9 s with the pipeline's, against 0.3-0.9
+s without it; 2.8-4.1 s per view at 1000x750 (three scenes resampled; 2.0-3.0 s without it).
+A solid occluder seen from every side
 in front of a surface is missed: the views that see it at the surface's point agree with each
 other, so no pixel of it looks unexplained.
 """
@@ -98,8 +97,7 @@ class OccupancyConfig:
         scenes, 22 scene-suns): row (d) above at 20 (-0.01 to +0.37 dB, mean +0.16), row (e)
         -0.03 to +0.30 (mean +0.06), and row (e) now within 0.01 dB of the option off or above it
         at all 22. Exploratory, on four of them: 0.7 within -0.12..+0.07 dB of 0.5 (means 0.00),
-        0.3 0.08 dB below with the true layers, 0 below at all 17 with them. 1: the moved shadow alone,
-        and no second relighter to build.
+        0.3 0.08 dB below with the true layers, 0 below at all 17 with them. 1: the moved shadow alone.
     min_hits : float
         With these distances the relighter keeps a shadow cluster only when at least this share
         of its sun rays hit the proxy or find an occluder here (instead of

@@ -434,8 +434,8 @@ class Relighter:
         the proxy), ``shadow_caster`` (merging and the BVHs), ``consistency`` (which other views'
         pixels see each receiver point, and the pixels the proxy does not explain,
         :attr:`unexplained`), ``fusion`` (the averaging of ``config.fusion``), ``new_sun_setup`` (what every
-        new sun reuses: the completion lookups and the shading terms), with :attr:`rescued` ``paper``
-        (the paper's relighter: its casters on, the views' geometry shared) and, with a ``client``,
+        new sun reuses: the completion lookups and the shading terms), with :attr:`rescued` ``rescued``
+        (the terms of the paper's image at those pixels) and, with a ``client``,
         ``scatter`` (shipping those to the workers, which build their Embree structures).
 
     Raises

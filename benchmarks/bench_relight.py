@@ -84,7 +84,8 @@ the caster misses or adds.
 :attr:`~mvintrinsic.relight.RelightConfig.lost_occluders` (the shadow rays that miss the proxy
 take the distance at which the photographs see what the proxy lost, :mod:`mvintrinsic.photo_occupancy`),
 with the seconds per view of building the relighter and the share of shadow pixels dropped
-(:func:`lost_occluders_scene`; ``lost_occluders_summary``: the means at +-15 degrees). The option
+(:func:`lost_occluders_scene`; ``lost_occluders_summary``: the means at +-15 degrees; the key ``off``
+was ``default`` before the option became the default, 2026-11-27). The option
 runs with its defaults (``OccupancyConfig.belief`` 0.5 since 2026-11-27: the rescued clusters' pixels
 mix the moved shadow and the paper's image; ``results/relight_lost_occluders_belief1.json`` is the
 run before, the moved shadow alone).
@@ -341,9 +342,9 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
             relit_vis = {"gt_proxy": proxy_vis, "gt_mesh": mesh_vis}
             for name, relighter in relighters.items():
                 start = time.perf_counter()
-                relit_vis[name] = relighter.visibility_at(direction)
-                rendered = relighter.render(direction, visibility=relit_vis[name])
+                rendered = relighter.render(direction)  # not given v': the rescued pixels mixed (OccupancyConfig.belief)
                 seconds = time.perf_counter() - start
+                relit_vis[name] = relighter.visibility_at(direction)
                 rows[name] = mean_psnr(rendered, images, sky_mask)
                 if sky == default.sky:
                     entry["seconds_per_view"].setdefault(name, {}).setdefault("render_per_sun", []).append(
@@ -405,7 +406,7 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
             suns = {"capture": (relighter.sun, inputs, None)} | {t: (d, im, vis) for t, (d, im, vis) in tags.items()}
             for tag, (direction, images, true_lit) in suns.items():
                 visibility = relighter.visibility_at(direction)
-                row[tag] = mean_psnr(relighter.render(direction, visibility=visibility), images, sky_mask)["mean"]
+                row[tag] = mean_psnr(relighter.render(direction), images, sky_mask)["mean"]
                 if true_lit is not None:
                     row["agreement_interior"][tag] = agreement(shadow_layer(relighter, visibility), true_lit)
             out[label][name] = row
@@ -612,9 +613,10 @@ def softness_scene(folder: Path) -> dict:
 
 
 def lost_occluders_scene(folder: Path) -> dict:
-    """Rows (a), (c), (d), (e) with the default and with ``RelightConfig(lost_occluders=OccupancyConfig())``.
+    """Rows (a), (c), (d), (e) without (``lost_occluders=None``, the paper's rule) and with ``RelightConfig.lost_occluders``.
 
-    Per option (``default``, ``lost_occluders``) and row (``gt_caster`` (d), ``pipeline`` (e)): the
+    Per option (``off``, ``lost_occluders``: its default ``OccupancyConfig()``, the relighter's default since
+    2026-11-27; the runs before that day call the option off ``default``) and row (``gt_caster`` (d), ``pipeline`` (e)): the
     relit PSNR per tag, the capture-sun PSNR against the input, the relighter's build seconds per
     view and the share of the views' pixels in dropped shadow clusters. ``input`` (a) and
     ``gt_mesh`` (c) per tag as in the main run.
@@ -631,7 +633,7 @@ def lost_occluders_scene(folder: Path) -> dict:
     for tag, (direction, images, _) in tags.items():
         out["input"][tag] = mean_psnr(inputs, images, sky_mask)["mean"]
         out["gt_mesh"][tag] = mean_psnr(mesh.render(plain, direction, RelightConfig()), images, sky_mask)["mean"]
-    for option, config in (("default", RelightConfig()), ("lost_occluders", RelightConfig(lost_occluders=OccupancyConfig()))):
+    for option, config in (("off", RelightConfig(lost_occluders=None)), ("lost_occluders", RelightConfig(lost_occluders=OccupancyConfig()))):
         out[option] = {}
         for row, decomposition in layers.items():
             start = time.perf_counter()
@@ -651,7 +653,7 @@ def lost_occluders_scene(folder: Path) -> dict:
 def lost_occluders_summary(study: dict) -> dict:
     """Means over the scenes' +-15 degree suns (the tags ``az+15``, ``az-15``) of (c) - (d) and (e) - (a)."""
     out = {}
-    for option in ("default", "lost_occluders"):
+    for option in ("off", "lost_occluders"):
         gaps, gains = [], []
         for entry in study.values():
             for tag in ("az+15", "az-15"):

@@ -189,7 +189,7 @@ class PhotoOccupancy:
         config = self.config
         samples = np.arange(config.start, config.max_distance, config.step)
         out = np.full(len(origins), np.inf)
-        active = np.arange(len(origins))
+        active = np.arange(len(origins) if len(self.cameras) >= config.min_views else 0)  # else none can count
         for first in range(0, len(samples), block):
             near = samples[first:first + block]
             for begin in range(0, len(active), chunk):

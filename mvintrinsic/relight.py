@@ -414,9 +414,9 @@ class Relighter:
         the proxy, or their colour disagrees with what the other views see at their receiver
         point); they keep :attr:`visibility` at every sun. Empty with ``consistency=None``.
     rescued : mapping of str to (H, W) bool
-        Per view, the pixels of the clusters the paper's rule drops and ``config.lost_occluders``
-        keeps, where :meth:`render` mixes the two (``OccupancyConfig.belief``; :meth:`layers` and
-        :meth:`visibility_at` give the moved shadow alone); empty without the option or belief 1.
+        Per view that has any, the pixels of the clusters the paper's rule drops and
+        ``config.lost_occluders`` keeps, where :meth:`render` mixes the two (``OccupancyConfig.belief``;
+        :meth:`layers` and :meth:`visibility_at` give the moved shadow alone); empty with belief 1.
     casters : mapping of str to Caster
         Per view, after the votes of every view (``method="multiview"``) and before merging
         (``dropped``: the pixels of the dropped clusters, ``config.dropped``).

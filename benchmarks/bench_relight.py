@@ -85,7 +85,7 @@ the caster misses or adds.
 take the distance at which the photographs see what the proxy lost, :mod:`mvintrinsic.photo_occupancy`),
 with the seconds per view of building the relighter and the share of shadow pixels dropped
 (:func:`lost_occluders_scene`; ``lost_occluders_summary``: the means at +-15 degrees; the key ``off``
-was ``default`` before the option became the default, 2026-11-27). The option
+was ``default`` in the runs before 2026-11-27). The option
 runs with its defaults (``OccupancyConfig.belief`` 0.5 since 2026-11-27: the rescued clusters' pixels
 mix the moved shadow and the paper's image; ``results/relight_lost_occluders_belief1.json`` is the
 run before, the moved shadow alone).
@@ -615,8 +615,8 @@ def softness_scene(folder: Path) -> dict:
 def lost_occluders_scene(folder: Path) -> dict:
     """Rows (a), (c), (d), (e) without (``lost_occluders=None``, the paper's rule) and with ``RelightConfig.lost_occluders``.
 
-    Per option (``off``, ``lost_occluders``: its default ``OccupancyConfig()``, the relighter's default since
-    2026-11-27; the runs before that day call the option off ``default``) and row (``gt_caster`` (d), ``pipeline`` (e)): the
+    Per option (``off``, ``lost_occluders``: ``OccupancyConfig()``; runs before 2026-11-27 call the option
+    off ``default``) and row (``gt_caster`` (d), ``pipeline`` (e)): the
     relit PSNR per tag, the capture-sun PSNR against the input, the relighter's build seconds per
     view and the share of the views' pixels in dropped shadow clusters. ``input`` (a) and
     ``gt_mesh`` (c) per tag as in the main run.

@@ -237,10 +237,10 @@ class RelightConfig:
         disagree); None: each view alone (the paper). Not in the paper (module docstring of
         :mod:`mvintrinsic.relight`, "One shadow in every view").
     lost_occluders : OccupancyConfig or None
-        A shadow pixel that another view confirms and whose sun ray misses the proxy takes the
-        distance at which the photographs see what the proxy lacks along the ray (a hit for the
-        cluster rules, then at least ``min_hits``; :mod:`mvintrinsic.photo_occupancy`; beyond the
-        paper, default: above None on both rows, ``docs/relight.md``). None: the paper.
+        A shadow pixel another view confirms whose sun ray misses the proxy takes the distance at which
+        the photographs see what the proxy lacks along it (a hit for the cluster rules, then at least
+        ``min_hits``; :mod:`mvintrinsic.photo_occupancy`; beyond the paper; inert with fewer views than
+        ``min_views``). None (default): the paper. Measured in ``docs/relight.md``.
     """
 
     tau_s: float = 0.8
@@ -260,7 +260,7 @@ class RelightConfig:
     ray_stride: int = 2
     consistency: float | None = 0.3
     fusion: str | None = "capture"
-    lost_occluders: OccupancyConfig | None = OccupancyConfig()
+    lost_occluders: OccupancyConfig | None = None
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),

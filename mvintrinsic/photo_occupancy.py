@@ -38,7 +38,9 @@ have ``min_hits`` (60%) of its rays hit instead of the paper's 30%: with 30%, ro
 labels shadow are lit in the truth (dark windows, a lost crown's own leaves, lit gaps under it),
 their sheets cast false shadows at the new sun and their reflectance, made for a shadow, is
 brighter than the paper's dropping leaves it in the light; a false shadow finds an occluder on
-fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). Building takes
+fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option, off
+by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB (``docs/relight.md``,
+"Not the default"). Building takes
 0.5-1.3 s per 480x360 view with the true layers and 0.5-1.9 s with the pipeline's, against 0.3-0.9
 s without it; 2.8-4.1 s per view at 1000x750 (three scenes resampled; 2.0-3.0 s without it).
 A solid occluder seen from every side

@@ -474,8 +474,8 @@ class Relighter:
             decomposition, scene, config, tracer, batch, capture, timings)
         reflectance, visibility, casters, lit_points, rescued = {}, {}, {}, {}, {}
         start = time.perf_counter()
-        occupancy, rule = None, config  # with lost_occluders (beyond the paper) its cluster rule, min_hits
-        if config.lost_occluders is not None:
+        occupancy, rule = None, config  # with lost_occluders (beyond the paper) its cluster rule, min_hits;
+        if config.lost_occluders is not None and len(scene.views) >= config.lost_occluders.min_views:  # else inert
             occupancy = photo_occupancy(scene.views, {s: hits[s].t.reshape(known[s].shape) for s in self.stems},
                                         known, nearest, config=config.lost_occluders)
             rule = replace(config, min_proxy_hits=max(config.min_proxy_hits, config.lost_occluders.min_hits))

@@ -174,10 +174,10 @@ def test_lost_occluders_summary_averages_the_15_degree_suns():
 
     study = {"s": {"input": {"az+15": 20.0, "az-15": 21.0, "az+30": 15.0},
                    "gt_mesh": {"az+15": 27.0, "az-15": 28.0, "az+30": 25.0},
-                   "default": entry(23.0, 22.0), "lost_occluders": entry(24.0, 21.0)}}
+                   "off": entry(23.0, 22.0), "lost_occluders": entry(24.0, 21.0)}}
     summary = bench_relight.lost_occluders_summary(study)
-    # (c) - (d): 4 and 4 by default, 3 and 3 with the option; (e) - (a): 2 and 0, 1 and -1
-    assert summary["default"] == {"c_minus_d_mean": 4.0, "c_minus_d_max": 4.0, "e_minus_a_mean": 1.0,
+    # (c) - (d): 4 and 4 without the option, 3 and 3 with it; (e) - (a): 2 and 0, 1 and -1
+    assert summary["off"] == {"c_minus_d_mean": 4.0, "c_minus_d_max": 4.0, "e_minus_a_mean": 1.0,
                                   "e_minus_a_min": 0.0, "scene_suns": 2}
     assert summary["lost_occluders"]["c_minus_d_mean"] == 3.0
     assert summary["lost_occluders"]["e_minus_a_min"] == -1.0

@@ -110,7 +110,7 @@ def test_relighting_on_a_cluster_is_identical(scene, serial, client, config):
     got = there.render(result.lighting.sun, visibility=here.visibility, fill="zero")
     assert all(np.array_equal(got[s], expected[s]) for s in expected)
     assert set(here.rescued) == set(there.rescued)  # their pixels mix the paper's image, here as there
-    if config.lost_occluders.min_views < len(scene.views):  # the default's 4 views: none of the demo's 3 rescued
+    if config.lost_occluders is not None:  # 2 views of the demo's 3 (the default's 4 could not count)
         assert here.rescued
     if config == RelightConfig():
         got = relight(result, scene, sun=(15.0, 40.0), client=client)

@@ -949,7 +949,7 @@ def test_relighter_methods_and_caster_modes(box_relit):
             assert shared == (casters == "merged" or len(relighter.stems) == 1)
             assert (len(relighter.excluded_primitives) == 0) or method == "multiview"
             assert set(relighter.timings) == {"receivers", "casters", "votes", "shadow_caster", "consistency",
-                                              "fusion", "new_sun_setup", "rescued"}  # lost_occluders' belief
+                                              "fusion", "new_sun_setup"}
     with pytest.raises(ValueError, match="method"):
         RelightConfig(method="exact")
     with pytest.raises(ValueError, match="casters"):

@@ -90,7 +90,8 @@ runs with its defaults (``OccupancyConfig.belief`` 0.5 since 2026-11-27: the res
 mix the moved shadow and the paper's image; ``results/relight_lost_occluders_belief1.json`` is the
 run before, the moved shadow alone).
 
-``--timing`` only times the relighter built on the ground-truth layers (build per view by stage,
+``--timing`` only times the relighter built on the ground-truth layers (with ``--lost-occluders``
+the option on; build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``; ``--size 1000x750``
 times a smaller scene's views and layers resampled to that size (:func:`upscaled`).
@@ -438,13 +439,15 @@ def upscaled(scene, decomposition, size: tuple[int, int]) -> tuple:
     return upsampled(scene, *size), Decomposition(layers, decomposition.lighting)
 
 
-def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = None) -> dict:
+def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = None,
+               config: RelightConfig | None = None) -> dict:
     """Seconds per view to build the relighter of the ground-truth layers and to relight one sun.
 
     For scenes without relit renders (e.g. the 1000x750 speed scene): the caster is built from the
     ground-truth labels and ``n_suns`` suns 5 to 25 degrees of azimuth from the capture are
     rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading). With
-    ``size`` (W, H) the views and layers are first resampled to it (:func:`upscaled`).
+    ``size`` (W, H) the views and layers are first resampled to it (:func:`upscaled`). ``config``:
+    the relighter's (default ``RelightConfig()``; ``--timing --lost-occluders``: with the option).
     """
     scene = load_scene(folder)
     stems = scene.stems
@@ -453,7 +456,7 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
     if size is not None:
         scene, ground_truth = upscaled(scene, ground_truth, size)
     start = time.perf_counter()
-    relighter = Relighter(ground_truth, scene, tracer=tracer)
+    relighter = Relighter(ground_truth, scene, tracer=tracer, config=config)
     build = time.perf_counter() - start
     azimuth, elevation = azimuth_elevation(scene.sun.direction, up=scene.up)
     suns = [(azimuth + delta, elevation) for delta in np.linspace(5.0, 25.0, n_suns)]
@@ -463,7 +466,7 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
         relighter.render(sun)
     per_sun = (time.perf_counter() - start) / n_suns
     h, w = scene.views[0].shape
-    out = {"size": f"{w}x{h}", "views": len(stems), "proxy_triangles": len(scene.proxy.triangles),
+    out = {"size": f"{w}x{h}", "views": len(stems), "lost_occluders": relighter.config.lost_occluders is not None, "proxy_triangles": len(scene.proxy.triangles),
            "build_per_view": build / len(stems), **{k: v / len(stems) for k, v in relighter.timings.items()},
            "render_per_sun_per_view": per_sun / len(stems), "suns": n_suns}
     print(f"{folder.name}: " + " ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in out.items()),
@@ -1148,7 +1151,8 @@ def main(argv: list[str] | None = None) -> int:
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
     size = _parse_size(args.size) if args.size else None
-    studies = (("timing", "timing", functools.partial(time_scene, size=size)), ("stride", "ray_stride", stride_scene),
+    timed = RelightConfig(lost_occluders=OccupancyConfig()) if args.lost_occluders else None  # --timing --lost-occluders
+    studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
                ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene),

@@ -39,11 +39,11 @@ labels shadow are lit in the truth (dark windows, a lost crown's own leaves, lit
 their sheets cast false shadows at the new sun and their reflectance, made for a shadow, is
 brighter than the paper's dropping leaves it in the light; a false shadow finds an occluder on
 fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option, off
-by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB (``docs/relight.md``,
-"Not the default"). Building takes
+by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB, and each new sun
+about 30 ms per view more at 1000x750 (``docs/relight.md``, "Not the default"). Building takes
 0.5-1.3 s per 480x360 view with the true layers and 0.5-1.9 s with the pipeline's, against 0.3-0.9
-s without it; 2.8-4.1 s per view at 1000x750 (three scenes resampled; 2.0-3.0 s without it).
-A solid occluder seen from every side
+s without it; 2.8-4.1 s per view at 1000x750 (three scenes resampled; 1.8-2.8 s without it). A
+solid occluder seen from every side
 in front of a surface is missed: the views that see it at the surface's point agree with each
 other, so no pixel of it looks unexplained.
 """
@@ -350,14 +350,13 @@ class _PaperPixels:
     S_ind')`` with the cluster dropped (its reflectance and capture visibility as
     :attr:`RelightConfig.dropped <mvintrinsic.caster.RelightConfig>` leaves them) and ``v'`` 1, or the given
     ``visibility``: no other caster or proxy shadow is cast there. Against the paper's whole relighter (the
-    first form, rendering every pixel again): within 0.001 dB on five scenes, 22 scene-suns, the true layers.
+    first form, rendering every pixel again): every relit PSNR within 0.004 dB, five scenes, 22 scene-suns,
+    both rows (``docs/relight.md``).
 
     Parameters
     ----------
-    index : (N,) int64
-        The rescued pixels, flat row-major indices.
     reflectance, base, floor, sky_shading, indirect_shading : (N, 3) float32
-        At those pixels: ``R``, ``S_sun' = max(base + L_sun max(0, n.d'), floor)``, ``S_sky``, ``S_ind``.
+        At the rescued pixels, in row-major order: ``R``, ``S_sun' = max(base + L_sun max(0, n.d'), floor)``, ``S_sky``, ``S_ind``.
     normals : (N, 3) float32
         Unit receiver normals, world frame.
     radiance : (3,) float32
@@ -368,10 +367,10 @@ class _PaperPixels:
         ``sky="model"``: the sky irradiance table at the normals.
     """
 
-    def __init__(self, index: np.ndarray, reflectance: np.ndarray, base: np.ndarray, floor: np.ndarray,
+    def __init__(self, reflectance: np.ndarray, base: np.ndarray, floor: np.ndarray,
                  normals: np.ndarray, sky_shading: np.ndarray, indirect_shading: np.ndarray, radiance: np.ndarray,
                  visibility: np.ndarray, sky_lookup: Callable[[np.ndarray], np.ndarray] | None) -> None:
-        self.index, self.reflectance, self.base, self.floor = index, reflectance, base, floor
+        self.reflectance, self.base, self.floor = reflectance, base, floor
         self.normals, self.sky_shading, self.indirect_shading = normals, sky_shading, indirect_shading
         self.radiance, self.visibility, self.sky_lookup = radiance, visibility, sky_lookup
 

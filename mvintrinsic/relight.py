@@ -704,7 +704,7 @@ class Relighter:
                                  self._radiance[stem].astype(np.float64), cosine[rescued], v[rescued])
         keep = self.unexplained[stem][rescued] if stem in self.unexplained else np.zeros(int(rescued.sum()), bool)
         normals = self.normals[stem][rescued]
-        return _PaperPixels(np.flatnonzero(rescued), r[rescued], base, floor, normals.astype(np.float32),
+        return _PaperPixels(r[rescued], base, floor, normals.astype(np.float32),
                             layers.sky_shading[rescued], layers.indirect_shading[rescued], self._radiance[stem],
                             np.where(keep | (config.dropped == "static"), v[rescued], 1.0).astype(np.float32),
                             _SphereLookup(normals, NORMAL_GRID_HEIGHT, self.up) if config.sky == "model" else None)

@@ -345,46 +345,6 @@ def photo_occupancy(views: Sequence[View], depth: Mapping[str, np.ndarray], know
     return PhotoOccupancy(tuple(v.camera for v in views), tuple(depths), tuple(occupied), tuple(free), config)
 
 
-class _PaperPixels:
-    """The paper's image at one view's rescued pixels (:attr:`OccupancyConfig.belief`): ``R (v' S_sun' + S_sky' +
-    S_ind')`` with the cluster dropped (its reflectance and capture visibility as
-    :attr:`RelightConfig.dropped <mvintrinsic.caster.RelightConfig>` leaves them) and ``v'`` 1, or the given
-    ``visibility``: no other caster or proxy shadow is cast there. Against the paper's whole relighter (the
-    first form, rendering every pixel again): every relit PSNR within 0.004 dB, five scenes, 22 scene-suns,
-    both rows (``docs/relight.md``).
-
-    Parameters
-    ----------
-    reflectance, base, floor, sky_shading, indirect_shading : (N, 3) float32
-        At the rescued pixels, in row-major order: ``R``, ``S_sun' = max(base + L_sun max(0, n.d'), floor)``, ``S_sky``, ``S_ind``.
-    normals : (N, 3) float32
-        Unit receiver normals, world frame.
-    radiance : (3,) float32
-        ``L_sun`` in the view's units.
-    visibility : (N,) float32
-        ``v'`` at every sun.
-    sky_lookup : callable or None
-        ``sky="model"``: the sky irradiance table at the normals.
-    """
-
-    def __init__(self, reflectance: np.ndarray, base: np.ndarray, floor: np.ndarray,
-                 normals: np.ndarray, sky_shading: np.ndarray, indirect_shading: np.ndarray, radiance: np.ndarray,
-                 visibility: np.ndarray, sky_lookup: Callable[[np.ndarray], np.ndarray] | None) -> None:
-        self.reflectance, self.base, self.floor = reflectance, base, floor
-        self.normals, self.sky_shading, self.indirect_shading = normals, sky_shading, indirect_shading
-        self.radiance, self.visibility, self.sky_lookup = radiance, visibility, sky_lookup
-
-    def __call__(self, direction: np.ndarray, environment: tuple[str, np.ndarray], indirect: float) -> np.ndarray:
-        """(N, 3) float32 at the float32 unit sun ``direction``; ``environment`` ``("paper", (3,) gain)`` or
-        ``("model", table)`` and ``indirect`` ``S_ind' / S_ind``, as the relighter's."""
-        cosine = np.maximum(self.normals @ direction, np.float32(0.0))
-        image = np.maximum(self.base + cosine[:, None] * self.radiance, self.floor) * self.visibility[:, None]
-        how, table = environment
-        image += self.sky_shading * (table.astype(np.float32) if how == "paper" else self.sky_lookup(table))
-        image += self.indirect_shading * np.float32(indirect)
-        return (image * self.reflectance).astype(np.float32)
-
-
 def blend_rescued(moved: Mapping[str, np.ndarray], paper: Mapping[str, np.ndarray], rescued: Mapping[str, np.ndarray],
                   belief: float) -> dict[str, np.ndarray]:
     """The expected relit image at the rescued pixels (:attr:`OccupancyConfig.belief`).

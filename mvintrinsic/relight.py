@@ -153,7 +153,7 @@ from .caster import (
     remove_contradicted,
     shadow_pixels,
 )
-from .photo_occupancy import _PaperPixels, blend_rescued, photo_occupancy
+from .photo_occupancy import blend_rescued, photo_occupancy
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer
 from .raytrace import sun_visibility as proxy_vertex_visibility
@@ -164,6 +164,9 @@ from .relit_shading import (
     SKY_RATIO_FLOOR,
     _grid_ratio,
     _into_light,
+    _PaperPixels,
+    _relit_sun_shading,
+    _sky_factor,
     _sky_irradiance_grid,
     _SkyPixels,
     _SphereLookup,
@@ -295,14 +298,11 @@ class _NewSun:
 
     def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
         """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
-        how, table = environment
-        return table.astype(np.float32) if how == "paper" else self.sky_lookup(table)
+        return _sky_factor(environment, self.sky_lookup)
 
     def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
         """``S_sun'`` (H, W, 3) float32 from ``max(0, n . d')``."""
-        s_sun = cosine[..., None] * self.radiance
-        s_sun += self.base
-        return np.maximum(s_sun, self.floor, out=s_sun)
+        return _relit_sun_shading(cosine, self.radiance, self.base, self.floor)
 
     def image(self, visibility: np.ndarray, sun_shading: np.ndarray, sky: np.ndarray, indirect: float,
               fill: str, direction: np.ndarray | None = None) -> np.ndarray:

@@ -223,7 +223,8 @@ class Config:
         if name == "paper":
             return dataclasses.replace(
                 base, exposure=ExposureConfig(method="none"), shadow=ShadowConfig(method="paper"), occluders=None,
-                env_refine=EnvRefineConfig(method="paper"), sun=dataclasses.replace(base.sun, direct_sun="always"),
+                env_refine=EnvRefineConfig(method="paper"),
+                sun=dataclasses.replace(base.sun, direct_sun="always", min_pair_contrast=None),
                 step1=dataclasses.replace(base.step1, normal_smoothing=0.0, sky_colour_tolerance=None,
                                           sky=dataclasses.replace(base.step1.sky, model="preetham")))
         return dataclasses.replace(  # "best"

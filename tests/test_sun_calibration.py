@@ -31,14 +31,17 @@ INDIRECT = np.array([0.08, 0.07, 0.05])
 COSINE = 0.7
 
 
-def make_view(reflectance_left, reflectance_right=None, *, noise=0.0, depth_step=0.0, seed=0):
-    """A view of a wall: left half in cast shadow (2-px linear penumbra), right half lit."""
+def make_view(reflectance_left, reflectance_right=None, *, noise=0.0, depth_step=0.0, seed=0, sunlit=False):
+    """A view of a wall: left half in cast shadow (2-px linear penumbra), right half lit.
+
+    ``sunlit``: the image has no shadow at all (the proxy's quantities still put the left half in it).
+    """
     reflectance_right = reflectance_left if reflectance_right is None else reflectance_right
     cols = np.arange(W)
     visibility = np.clip((cols - EDGE + 1.5) / 3.0, 0.0, 1.0)[None, :].repeat(H, axis=0)
     reflectance = np.where((cols < EDGE)[None, :, None], np.asarray(reflectance_left), np.asarray(reflectance_right))
     reflectance = np.broadcast_to(reflectance, (H, W, 3))
-    shading = SKY + INDIRECT + visibility[..., None] * L_SUN * COSINE
+    shading = SKY + INDIRECT + (1.0 if sunlit else visibility[..., None]) * L_SUN * COSINE
     image = reflectance * shading
     if noise:
         image = image * (1 + noise * np.random.default_rng(seed).standard_normal(image.shape))
@@ -129,6 +132,22 @@ def test_different_chromaticities_across_the_edge_give_no_pair():
     assert pairs.rejected["no_similar_chromaticity"] == pairs.n_samples > 0
 
 
+def test_a_sunlit_darker_material_is_no_pair_unless_the_paper_is_asked():
+    # The proxy says shadow on the left, but the left is in the sun, 20% darker than the right: the
+    # pair's contrast (1.25) is the material's, and Eq. 5 turns it into a sun of a fraction of the truth.
+    right = np.array([0.5, 0.45, 0.4])
+    view, q = make_view(0.8 * right, right, sunlit=True)
+    paper = find_sun_pairs(view, q, config=SunConfig(min_pair_contrast=None))
+    assert len(paper) >= 10 and paper.rejected["low_contrast"] == 0
+    assert (calibrate_sun([paper]).sun_radiance < 0.25 * L_SUN).all()
+    ours = find_sun_pairs(view, q)
+    assert len(ours) == 0 and ours.rejected["low_contrast"] == len(paper)
+    assert sum(ours.rejected.values()) == ours.n_samples
+    # a true shadow of the same contrast range keeps every pair: its contrast is 1 + L cos / S_env ~ 3
+    view, q = make_view(right)
+    assert find_sun_pairs(view, q).rejected["low_contrast"] == 0
+
+
 def test_a_depth_discontinuity_on_the_walk_rejects_the_sample():
     view, q = make_view([0.5, 0.45, 0.4], depth_step=0.05)
     edges = discontinuity_edges(q)
@@ -162,7 +181,8 @@ def test_median_is_per_channel_over_all_views():
 
 
 @pytest.mark.parametrize("bad", [{"n_clusters": 1}, {"walk": 0}, {"chroma_tolerance": 0}, {"min_cosine": 1.0},
-                                 {"smoothing": 0}, {"boundary_step": 2.5}, {"pick": "max"}, {"normal_sigma": -1.0}])
+                                 {"smoothing": 0}, {"boundary_step": 2.5}, {"pick": "max"}, {"normal_sigma": -1.0},
+                                 {"min_pair_contrast": 0.5}, {"min_pair_contrast": "high"}])
 def test_config_validation_names_the_field(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):
         SunConfig(**bad)

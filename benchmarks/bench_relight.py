@@ -1,7 +1,8 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
-                                       | --proxy-loss | --error-split | --sky-pixels]
+                                       | --proxy-loss | --error-split | --sky-pixels
+                                       | --lost-occluders | --sun-radiance]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -89,6 +90,11 @@ was ``default`` in the runs before 2026-11-27). The option
 runs with its defaults (``OccupancyConfig.belief`` 0.5 since 2026-11-27: the rescued clusters' pixels
 mix the moved shadow and the paper's image; ``results/relight_lost_occluders_belief1.json`` is the
 run before, the moved shadow alone).
+
+``--sun-radiance`` only relights the pipeline's layers with its ``L_sun`` replaced by the truth, by
+the truth's level (luminance) alone and by its colour alone, the reflectance made again
+(:func:`sun_radiance_scene`, an oracle; ``sun_radiance_summary``: the means at +-15 degrees): what a
+better ``L_sun`` (issue 16) would give the relit images.
 
 ``--timing`` only times the relighter built on the ground-truth layers (with ``--lost-occluders``
 the option on; build per view by stage,
@@ -653,6 +659,75 @@ def lost_occluders_scene(folder: Path) -> dict:
     return out
 
 
+#: Rec. 709 luminance weights, for the level of ``L_sun`` in :func:`sun_radiance_scene`.
+LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
+#: The rows of ``--sun-radiance`` (:func:`sun_radiance_scene`).
+SUN_RADIANCE_ROWS = ("input", "gt_caster", "pipeline", "pipeline_true_sun", "pipeline_true_level", "pipeline_true_colour")
+
+
+def with_sun_radiance(decomposition, scene, factor: np.ndarray):
+    """``decomposition`` with ``L_sun`` multiplied by ``factor`` ``(3,)`` and the reflectance made again.
+
+    ``S_sun`` (every view's layer and ``lighting.sun_radiance``) is scaled; the reflectance is
+    ``I / (v_sun S_sun + S_sky + S_ind)`` (Eq. 2) again, so the layers still give the input at the capture
+    sun; pixels whose total shading vanishes keep theirs. An oracle when ``factor`` is the truth over
+    the estimate.
+    """
+    factor = np.asarray(factor, dtype=np.float64)
+    images = {v.stem: v.image for v in scene.views}
+    layers = {}
+    for stem, layer in decomposition.layers.items():
+        sun = layer.sun_shading * factor.astype(layer.sun_shading.dtype)
+        total = layer.visibility[..., None] * sun + layer.sky_shading + layer.indirect_shading
+        good = np.all(total > 1e-6, axis=-1, keepdims=True)
+        again = images[stem] / np.where(good, total, 1.0)
+        reflectance = np.where(good, again, layer.reflectance).astype(layer.reflectance.dtype)
+        layers[stem] = dataclasses.replace(layer, sun_shading=sun, reflectance=reflectance)
+    lighting = dataclasses.replace(decomposition.lighting,
+                                   sun_radiance=np.asarray(decomposition.lighting.sun_radiance) * factor)
+    return dataclasses.replace(decomposition, layers=layers, lighting=lighting)
+
+
+def sun_radiance_scene(folder: Path) -> dict:
+    """What the pipeline's ``L_sun`` costs the relit images (:data:`SUN_RADIANCE_ROWS`; an oracle study).
+
+    Rows (a), (d) and (e) as in :func:`run_scene` (default :class:`~mvintrinsic.relight.RelightConfig`),
+    then row (e) with the pipeline's ``L_sun`` replaced by :func:`with_sun_radiance`: by the truth
+    (``pipeline_true_sun``), by its level only (the estimate times the ratio of the luminances,
+    :data:`LUMINANCE`: ``pipeline_true_level``), and by its colour only (the truth scaled to the
+    estimate's luminance: ``pipeline_true_colour``). Also the estimate and the truth.
+    """
+    scene, tags, sky_mask = _relit_scene(folder, "--sun-radiance")
+    stems = scene.stems
+    tracer = Tracer(scene.proxy)
+    inputs = {v.stem: v.image for v in scene.views}
+    truth_layers = ground_truth_decomposition(folder, views=list(stems))
+    result = decompose(scene, tracer=tracer)
+    estimate = np.asarray(result.lighting.sun_radiance, dtype=np.float64)
+    true_sun = np.asarray(truth_layers.lighting.sun_radiance, dtype=np.float64)
+    level = (LUMINANCE @ true_sun) / (LUMINANCE @ estimate)
+    factors = {"pipeline": np.ones(3), "pipeline_true_sun": true_sun / estimate,
+               "pipeline_true_level": np.full(3, level), "pipeline_true_colour": true_sun / estimate / level}
+    relighters = {"gt_caster": Relighter(truth_layers, scene, config=RelightConfig(), tracer=tracer)}
+    for row, factor in factors.items():
+        relighters[row] = Relighter(with_sun_radiance(result, scene, factor), scene, config=RelightConfig(), tracer=tracer)
+    out = {"sun_radiance": estimate.tolist(), "true_sun_radiance": true_sun.tolist(),
+           "over_truth": (estimate / true_sun).tolist(), "psnr": {}}
+    for tag, (direction, images, _) in tags.items():
+        rows = {"input": mean_psnr(inputs, images, sky_mask)["mean"]}
+        rows.update({row: mean_psnr(r.render(direction), images, sky_mask)["mean"] for row, r in relighters.items()})
+        out["psnr"][tag] = rows
+        print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in rows.items()), flush=True)
+    return out
+
+
+def sun_radiance_summary(study: dict) -> dict:
+    """Per row of :data:`SUN_RADIANCE_ROWS`, the mean over the scenes' +-15 degree suns of the row minus (a)."""
+    gains = {row: [entry["psnr"][tag][row] - entry["psnr"][tag]["input"] for entry in study.values()
+                   for tag in ("az+15", "az-15") if tag in entry["psnr"]] for row in SUN_RADIANCE_ROWS[1:]}
+    return {row: {"minus_input_mean": float(np.mean(v)), "scene_suns": len(v)} for row, v in gains.items()}
+
+
 def lost_occluders_summary(study: dict) -> dict:
     """Means over the scenes' +-15 degree suns (the tags ``az+15``, ``az-15``) of (c) - (d) and (e) - (a)."""
     out = {}
@@ -1130,6 +1205,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only where row (d)'s squared error is beyond row (c)'s, by true and relit shadow state")
     parser.add_argument("--lost-occluders", action="store_true",
                         help="only rows (a), (c)-(e) with and without RelightConfig.lost_occluders (lost_occluders_scene)")
+    parser.add_argument("--sun-radiance", action="store_true",
+                        help="only row (e) with the pipeline's L_sun replaced by the truth, its level or its colour")
     parser.add_argument("--sky-pixels", action="store_true",
                         help="only compare RelightConfig.sky_pixels' modes on the sky pixels (sky_pixels_scene)")
     parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
@@ -1156,7 +1233,7 @@ def main(argv: list[str] | None = None) -> int:
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
                ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene),
-               ("lost_occluders", "lost_occluders", lost_occluders_scene))
+               ("lost_occluders", "lost_occluders", lost_occluders_scene), ("sun_radiance", "sun_radiance", sun_radiance_scene))
     if args.proxy_variant:
         studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)
@@ -1176,6 +1253,8 @@ def main(argv: list[str] | None = None) -> int:
                 report["receivers_summary"] = bounds_summary(report["receivers"], RECEIVER_ROWS)
             if key == "lost_occluders":
                 report["lost_occluders_summary"] = lost_occluders_summary(report[key])
+            if key == "sun_radiance":
+                report["sun_radiance_summary"] = sun_radiance_summary(report[key])
             if args.out:
                 write_json(args.out, report)
             return 0

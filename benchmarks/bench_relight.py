@@ -125,7 +125,7 @@ from bench_shadows import away_from_edges
 from scipy import ndimage
 
 import mvintrinsic
-from mvintrinsic import Config, decompose
+from mvintrinsic import Config, decompose, image_model
 from mvintrinsic.caster import AUTO_COMPLETION_DISTANCE
 from mvintrinsic.correspondence import cross_view_agreement
 from mvintrinsic.env_shading import step1
@@ -678,10 +678,8 @@ def with_sun_radiance(decomposition, scene, factor: np.ndarray):
     layers = {}
     for stem, layer in decomposition.layers.items():
         sun = layer.sun_shading * factor.astype(layer.sun_shading.dtype)
-        total = layer.visibility[..., None] * sun + layer.sky_shading + layer.indirect_shading
-        good = np.all(total > 1e-6, axis=-1, keepdims=True)
-        again = images[stem] / np.where(good, total, 1.0)
-        reflectance = np.where(good, again, layer.reflectance).astype(layer.reflectance.dtype)
+        again = image_model.reflectance(images[stem], layer.sky_shading, layer.indirect_shading, layer.visibility, sun)
+        reflectance = np.where(np.isfinite(again), again, layer.reflectance).astype(layer.reflectance.dtype)
         layers[stem] = dataclasses.replace(layer, sun_shading=sun, reflectance=reflectance)
     lighting = dataclasses.replace(decomposition.lighting,
                                    sun_radiance=np.asarray(decomposition.lighting.sun_radiance) * factor)

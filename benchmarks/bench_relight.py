@@ -659,22 +659,19 @@ def lost_occluders_scene(folder: Path) -> dict:
     return out
 
 
-#: Rec. 709 luminance weights, for the level of ``L_sun`` in :func:`sun_radiance_scene`.
-LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 #: The rows of ``--sun-radiance`` (:func:`sun_radiance_scene`).
 SUN_RADIANCE_ROWS = ("input", "gt_caster", "pipeline", "pipeline_true_sun", "pipeline_true_level", "pipeline_true_colour")
 
 
-def with_sun_radiance(decomposition, scene, factor: np.ndarray):
+def with_sun_radiance(decomposition, images: dict, factor: np.ndarray):
     """``decomposition`` with ``L_sun`` multiplied by ``factor`` ``(3,)`` and the reflectance made again.
 
     ``S_sun`` (every view's layer and ``lighting.sun_radiance``) is scaled; the reflectance is
     ``I / (v_sun S_sun + S_sky + S_ind)`` (Eq. 2) again, so the layers still give the input at the capture
-    sun; pixels whose total shading vanishes keep theirs. An oracle when ``factor`` is the truth over
-    the estimate.
+    sun; pixels whose total shading vanishes keep theirs. ``images``: the input image of every view. An
+    oracle when ``factor`` is the truth over the estimate.
     """
     factor = np.asarray(factor, dtype=np.float64)
-    images = {v.stem: v.image for v in scene.views}
     layers = {}
     for stem, layer in decomposition.layers.items():
         sun = layer.sun_shading * factor.astype(layer.sun_shading.dtype)
@@ -692,7 +689,7 @@ def sun_radiance_scene(folder: Path) -> dict:
     Rows (a), (d) and (e) as in :func:`run_scene` (default :class:`~mvintrinsic.relight.RelightConfig`),
     then row (e) with the pipeline's ``L_sun`` replaced by :func:`with_sun_radiance`: by the truth
     (``pipeline_true_sun``), by its level only (the estimate times the ratio of the luminances,
-    :data:`LUMINANCE`: ``pipeline_true_level``), and by its colour only (the truth scaled to the
+    :func:`mvintrinsic.image_model.luminance`: ``pipeline_true_level``), and by its colour only (the truth scaled to the
     estimate's luminance: ``pipeline_true_colour``). Also the estimate and the truth.
     """
     scene, tags, sky_mask = _relit_scene(folder, "--sun-radiance")
@@ -703,12 +700,12 @@ def sun_radiance_scene(folder: Path) -> dict:
     result = decompose(scene, tracer=tracer)
     estimate = np.asarray(result.lighting.sun_radiance, dtype=np.float64)
     true_sun = np.asarray(truth_layers.lighting.sun_radiance, dtype=np.float64)
-    level = (LUMINANCE @ true_sun) / (LUMINANCE @ estimate)
+    level = image_model.luminance(true_sun) / image_model.luminance(estimate)
     factors = {"pipeline": np.ones(3), "pipeline_true_sun": true_sun / estimate,
                "pipeline_true_level": np.full(3, level), "pipeline_true_colour": true_sun / estimate / level}
     relighters = {"gt_caster": Relighter(truth_layers, scene, config=RelightConfig(), tracer=tracer)}
     for row, factor in factors.items():
-        relighters[row] = Relighter(with_sun_radiance(result, scene, factor), scene, config=RelightConfig(), tracer=tracer)
+        relighters[row] = Relighter(with_sun_radiance(result, inputs, factor), scene, config=RelightConfig(), tracer=tracer)
     out = {"sun_radiance": estimate.tolist(), "true_sun_radiance": true_sun.tolist(),
            "over_truth": (estimate / true_sun).tolist(), "psnr": {}}
     for tag, (direction, images, _) in tags.items():

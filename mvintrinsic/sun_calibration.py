@@ -110,9 +110,9 @@ class SunConfig:
         L_sun cos omega_lit / S_env,shadow`` (luminances), is at least this, i.e. when its lit
         pixel gets from the sun at least ``min_pair_contrast - 1`` times the environment light of
         its shadowed pixel. A "shadowed" pixel that is a dark material in the sun gives an
-        estimate near 0 (the paper's Eq. 5 rejects only ``L_sun <= 0``, a contrast of 1). ``None``
-        is the paper. Measured (``docs/step2.md``): on the two streets under trees 52-55% of the
-        pairs' shadowed pixels are lit, 420 and 178 of their pairs fall below 1.5, and ``L_sun``
+        estimate near 0, which the ``degenerate`` rule (``L_sun <= 0``, a contrast of 1) keeps.
+        ``None``: that rule alone, as in the paper. Measured (``docs/step2.md``): on the two streets under trees 52-55% of the
+        pairs' shadowed pixels are lit, 421 and 179 of their pairs fall below 1.5, and ``L_sun``
         goes from 0.51/0.56/0.81 and 0.40/0.37/0.43 of the truth to 0.91/0.99/1.33 and
         0.71/0.66/0.77; at most 17 pairs fall on five other scenes. 2.0 overshoots (1.43/1.54/2.08).
     smoothing : int
@@ -529,18 +529,18 @@ def find_sun_pairs(view: View, quantities: PixelQuantities, *, config: SunConfig
     lit_px = lit_rc[keep, i_lit]
     sh_px = sh_rc[keep, i_sh]
     env = quantities.env.astype(np.float64)
+    env_shadow, cos_lit = env[sh_px[:, 0], sh_px[:, 1]], quantities.cosine[lit_px[:, 0], lit_px[:, 1]]
     estimates = sun_radiance_from_pair(  # Eq. 5 with v = 1 at the lit pixel, 0 at the shadowed one
         image[lit_px[:, 0], lit_px[:, 1]], image[sh_px[:, 0], sh_px[:, 1]],
-        env[lit_px[:, 0], lit_px[:, 1]], env[sh_px[:, 0], sh_px[:, 1]],
+        env[lit_px[:, 0], lit_px[:, 1]], env_shadow,
         np.ones(len(keep)), np.zeros(len(keep)),
-        quantities.cosine[lit_px[:, 0], lit_px[:, 1]], quantities.cosine[sh_px[:, 0], sh_px[:, 1]],
+        cos_lit, quantities.cosine[sh_px[:, 0], sh_px[:, 1]],
     )
     good = np.isfinite(estimates).all(axis=1) & (estimates > 0).all(axis=1)
     rejected["degenerate"] = int((~good).sum())
     if config.min_pair_contrast is not None:  # beyond the paper: the pair must show the sun
-        sun = luminance(estimates) * quantities.cosine[lit_px[:, 0], lit_px[:, 1]]
-        contrast = 1.0 + sun / np.maximum(luminance(env[sh_px[:, 0], sh_px[:, 1]]), 1e-12)
-        low = good & ~(contrast >= config.min_pair_contrast)
+        contrast = 1.0 + luminance(estimates) * cos_lit / np.maximum(luminance(env_shadow), 1e-12)
+        low = good & (contrast < config.min_pair_contrast)
         rejected["low_contrast"] = int(low.sum())
         good &= ~low
     return SunPairs(

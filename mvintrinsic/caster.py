@@ -92,7 +92,7 @@ from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
 from .results import SHADOW_LABELS
 
-__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
+__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
 
 #: 8-connectivity of the shadow clusters.
 _EIGHT = np.ones((3, 3), dtype=bool)
@@ -115,6 +115,8 @@ FUSION_MODES = ("capture", "all")
 DROPPED_MODES = ("light", "static", "none")
 #: How the sky pixels change colour, :attr:`RelightConfig.sky_pixels`.
 SKY_PIXEL_MODES = ("paper", "model", "input")
+#: Which shadow pixels the caster is built from, :attr:`RelightConfig.caster_pixels`.
+CASTER_PIXEL_MODES = ("paper", "labels")
 
 
 @dataclass(frozen=True)
@@ -126,6 +128,18 @@ class RelightConfig:
     tau_s : float
         A pixel with ``v_sun < tau_s`` counts as shadow besides the shadow labels; in [0, 1].
         0.8: "We used tau_s = 0.8 for all our results."
+    caster_pixels : {"paper", "labels"}
+        The shadow pixels the caster is built from (:data:`CASTER_PIXEL_MODES`). ``"paper"``
+        (default): the labelled shadow or ``v_sun < tau_s``, all of them lifted (Sec. 8).
+        ``"labels"`` (beyond the paper): the labelled shadow alone; the pixels with ``v_sun <
+        tau_s`` outside its kept clusters count as dropped (:attr:`Caster.dropped`, relit as
+        ``dropped`` says), so their captured darkness still goes into the reflectance with the
+        paper's ``"light"``. For labels better than Step 3's: with the true labels in Steps 3-4
+        and ``lost_occluders``, row (e) of ``benchmarks/bench_relight.py`` rises by 1.7-2.0 dB
+        on demo_480 at +-15 degrees (the matting's soft ``v_sun`` below 0.8 at lit pixels joins
+        true shadows into clusters the rules drop whole) and by -0.04 to +0.36 dB on four other
+        scenes, (e) - (a) 2.51 -> 2.94 dB on average; with the pipeline's own labels it loses
+        (-0.46 to +0.08 dB), so not the default (``docs/relight.md``, "Perfect shadow labels").
     epsilon : int
         A caster triangle first hit by more than ``epsilon`` sun rays from lit pixels is removed;
         >= 0. 3: "We used epsilon = 3 for all our results."
@@ -244,6 +258,7 @@ class RelightConfig:
     """
 
     tau_s: float = 0.8
+    caster_pixels: str = "paper"
     epsilon: int = 3
     min_cluster: int = 100
     min_proxy_hits: float = 0.3
@@ -264,7 +279,8 @@ class RelightConfig:
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),
-                              ("dropped", DROPPED_MODES), ("sky_pixels", SKY_PIXEL_MODES)):
+                              ("dropped", DROPPED_MODES), ("sky_pixels", SKY_PIXEL_MODES),
+                              ("caster_pixels", CASTER_PIXEL_MODES)):
             value = getattr(self, name)
             if name == "fusion" and value is None:
                 continue

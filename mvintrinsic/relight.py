@@ -43,6 +43,10 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
   :attr:`RelightConfig.lost_occluders` the photographs may place their occluder
   (:mod:`.photo_occupancy`), and the pixels of the clusters kept only thanks to it mix the two
   images (:attr:`Relighter.rescued`, ``OccupancyConfig.belief``);
+* the caster from the labelled shadow alone (beyond the paper, ``caster_pixels="labels"``, not the
+  default): the pixels with ``v_sun < tau_s`` outside its kept clusters are dropped instead of
+  lifted; for labels better than Step 3's (with the true labels and ``lost_occluders``, (e) - (a)
+  at +-15 degrees 2.51 -> 2.94 dB; with Step 3's labels it loses: ``docs/relight.md``);
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new
@@ -134,6 +138,7 @@ from ._cluster import _as_client, _Rebuilt, _ViewTasks
 from ._validation import as_array, config_or_default, describe
 from .caster import (
     CASTER_MODES,
+    CASTER_PIXEL_MODES,
     DROPPED_MODES,
     RELIGHT_METHODS,
     SKY_ADJUSTMENTS,
@@ -190,7 +195,7 @@ from .shadow_caster import (
     receiver_points,
 )
 
-__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "CASTER_MODES", "DROPPED_MODES", "RELIGHT_METHODS",
+__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "RELIGHT_METHODS",
            "SKY_ADJUSTMENTS", "SKY_GRID_HEIGHT", "SKY_PIXEL_MODES", "SKY_RATIO_FLOOR", "Caster",
            "RelightConfig", "Relighter", "ShadowCaster", "as_sun_direction", "build_caster",
            "contradicted_primitives", "merge_casters", "paper_environment_factors", "receiver_depth",
@@ -486,12 +491,17 @@ class Relighter:
             layers = decomposition.layers[stem]
             labels = layers.shadow_labels
             shadow = shadow_pixels(labels, layers.visibility, tau_s=config.tau_s)
+            # caster_pixels="labels" (beyond the paper): lift the labelled shadow alone; the pixels
+            # with v_sun < tau_s outside its kept clusters are dropped (relit as config.dropped says).
+            lifted = shadow if config.caster_pixels == "paper" else shadow_pixels(labels, None)
             lit = hit & ~shadow & (labels == SHADOW_LABELS["lit"])
             lit_points[stem] = receivers[stem][lit]
             missed = np.zeros(view.shape, dtype=bool)  # shadow pixels whose sun ray misses the proxy
             distance = None if occupancy is None else occupancy.sun_ray_distance(index, receivers[stem], asked=missed)
-            casters[stem] = build_caster(camera, shadow, receivers[stem], capture, tracer, lit=lit, up=up,
+            casters[stem] = build_caster(camera, lifted, receivers[stem], capture, tracer, lit=lit, up=up,
                                          config=rule, batch=batch, occluder_distance=distance)
+            if lifted is not shadow:
+                casters[stem] = replace(casters[stem], dropped=shadow & ~casters[stem].shadow)
             timings["casters"] += time.perf_counter() - start
             r, v = layers.reflectance, layers.visibility
             dropped = casters[stem].dropped
@@ -500,7 +510,7 @@ class Relighter:
             reflectance[stem] = _read_only(np.array(r, dtype=np.float32))
             visibility[stem] = _read_only(np.array(v, dtype=np.float32))
             if occupancy is not None and config.lost_occluders.belief < 1:  # kept, and dropped by the paper's rule
-                rescued[stem] = casters[stem].shadow & ~kept_clusters(shadow, shadow & ~missed, config.min_cluster,
+                rescued[stem] = casters[stem].shadow & ~kept_clusters(lifted, lifted & ~missed, config.min_cluster,
                                                                       config.min_proxy_hits)[0]
 
         start = time.perf_counter()

@@ -769,6 +769,61 @@ def test_a_dropped_clusters_shadow_stays_where_it_was(box_relit):
     assert np.median(out["light"] / env) < 1.5 < np.median(out["none"] / env)
 
 
+def soft_halo_decomposition(box: BoxScene, direction: np.ndarray) -> tuple[Decomposition, Scene, np.ndarray]:
+    """The box layers with a 3-pixel halo of lit-labelled ground around the box's shadow at ``v_sun``
+    0.6 (below ``tau_s``, as Step 3's matting leaves some lit pixels), the image made from them."""
+    decomposition, _ = box_decomposition(box, direction)
+    layers = decomposition.layers["box"]
+    shadow = layers.shadow_labels == SHADOW_LABELS["shadow"]
+    halo = ndimage.binary_dilation(shadow, iterations=3) & ~shadow & box.ground
+    visibility = np.where(halo, np.float32(0.6), layers.visibility).astype(np.float32)
+    layers = IntrinsicLayers("box", reflectance=layers.reflectance, sun_shading=layers.sun_shading,
+                             sky_shading=layers.sky_shading, indirect_shading=layers.indirect_shading,
+                             visibility=visibility, shadow_labels=layers.shadow_labels)
+    image = np.where(box.hit[..., None], layers.reconstruct(), np.float32(0.3)).astype(np.float32)
+    scene = Scene([View("box", image, box.camera)], box.tracer.proxy, Sun(direction))
+    return Decomposition({"box": layers}, decomposition.lighting), scene, halo
+
+
+def test_the_caster_from_the_labels_alone_leaves_out_the_soft_pixels(scene):
+    # caster_pixels="labels" (beyond the paper): the halo's pixels (v_sun 0.6 < tau_s, labelled lit)
+    # are not lifted but dropped (brought into light), so the moved shadow keeps the box's width;
+    # the paper's rule lifts them with the shadow and the new shadow grows by the halo.
+    capture = sun(SUN_AZIMUTH, SUN_ELEVATION)
+    decomposition, halo_scene, halo = soft_halo_decomposition(scene, capture)
+    assert halo.sum() > 100
+    layers = decomposition.layers["box"]
+    moved = as_sun_direction((SUN_AZIMUTH + 15.0, SUN_ELEVATION))
+    exact = scene.ground & scene.exact_shadow(moved)
+    scores = {}
+    for mode in ("paper", "labels"):
+        relighter = Relighter(decomposition, halo_scene, config=RelightConfig(caster_pixels=mode))
+        caster = relighter.casters["box"]
+        if mode == "paper":
+            assert caster.shadow[halo].mean() > 0.9  # the halo lifted with the shadow it touches
+        else:
+            assert not caster.shadow[halo].any() and caster.dropped[halo].all()
+            assert (caster.shadow == (layers.shadow_labels == SHADOW_LABELS["shadow"])).all()
+            # Brought into light as the paper's dropped clusters: v_sun 1, reflectance I / (S_sun + S_env).
+            assert (relighter.visibility["box"][halo] == 1).all()
+            image = halo_scene.views[0].image
+            in_light = image[halo] / (layers.sun_shading + layers.env_shading)[halo]
+            np.testing.assert_allclose(relighter.reflectance["box"][halo], in_light, rtol=1e-5)
+            # The identity at the capture sun still holds.
+            out = relighter.render(relighter.sun, visibility=relighter.visibility, fill="zero")["box"]
+            assert np.abs(out - image * scene.hit[..., None]).max() <= IDENTITY_RTOL * image.max()
+        ours = scene.ground & (relighter.visibility_at(moved)["box"] < 0.5)
+        scores[mode] = iou(ours, exact)
+    # Measured: IoU 0.66 with the paper's rule, 0.97 from the labels alone.
+    assert scores["labels"] >= IOU_RELIT and scores["labels"] > scores["paper"] + 0.1
+
+
+def test_relight_config_caster_pixels():
+    assert RelightConfig().caster_pixels == "paper"
+    with pytest.raises(ValueError, match="caster_pixels must be one of 'paper', 'labels'"):
+        RelightConfig(caster_pixels="soft")
+
+
 def scene_hit(relighter: Relighter) -> np.ndarray:
     return np.isfinite(relighter.tracer.intersect(relighter.scene.views[0].camera.center,
                                                   relighter.scene.views[0].camera.pixel_rays()).t.reshape(H, W))

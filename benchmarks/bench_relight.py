@@ -2,7 +2,7 @@
 
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
                                        | --proxy-loss | --error-split | --sky-pixels
-                                       | --lost-occluders | --sun-radiance]
+                                       | --lost-occluders | --sun-radiance | --true-labels]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
@@ -95,6 +95,12 @@ run before, the moved shadow alone).
 the truth's level (luminance) alone and by its colour alone, the reflectance made again
 (:func:`sun_radiance_scene`, an oracle; ``sun_radiance_summary``: the means at +-15 degrees): what a
 better ``L_sun`` (issue 16) would give the relit images.
+
+``--true-labels`` only decomposes again with the true shadow labels in place of Step 3's
+multi-view labelling and relights by the default relighter, with ``lost_occluders`` and with the
+caster from the labels alone (``RelightConfig.caster_pixels``), beside the same relighters on the
+pipeline's own layers (:func:`true_labels_scene`, an oracle; ``true_labels_summary``: the means at
++-15 degrees): what better labels would give the relit images, and what the caster needs of them.
 
 ``--timing`` only times the relighter built on the ground-truth layers (with ``--lost-occluders``
 the option on; build per view by stage,
@@ -723,6 +729,84 @@ def sun_radiance_summary(study: dict) -> dict:
     return {row: {"minus_input_mean": float(np.mean(v)), "scene_suns": len(v)} for row, v in gains.items()}
 
 
+#: The rows of ``--true-labels`` (:func:`true_labels_scene`): the layers (``pipeline``: Steps 1-4 as they
+#: are; ``true_labels``: Steps 3-4 on the true labels; ``gt``: the true layers, row (d)) and the relighter
+#: (none: the default; ``option``: ``lost_occluders``; ``labels_caster``: and ``caster_pixels="labels"``).
+TRUE_LABEL_ROWS = ("input", "pipeline", "pipeline_option", "pipeline_option_labels_caster", "true_labels",
+                   "true_labels_option", "true_labels_option_labels_caster", "gt_option")
+
+
+@contextlib.contextmanager
+def _true_shadow_labels(truth: dict):
+    """Steps 3-4 of :func:`~mvintrinsic.decompose` on the true shadow labels (an oracle).
+
+    Replaces, for the duration, the pipeline's multi-view labelling (``pipeline._multiview_labels``,
+    private) by one that keeps its output but sets every decided pixel's label from
+    ``gt/sun_visibility`` (lit at 0.5 or more) and its visibility to the truth's; the matting then
+    solves ``v_sun`` for those labels and Step 4 fuses as usual. ``truth``: stem -> ViewGroundTruth.
+    """
+    from mvintrinsic import pipeline
+
+    original = pipeline._multiview_labels
+
+    def labelled(scene, quantities, sun_radiance, *, config, timings, progress):
+        shared = original(scene, quantities, sun_radiance, config=config, timings=timings, progress=progress)
+        views = {}
+        for stem, found in shared.views.items():
+            lit = np.asarray(truth[stem].sun_visibility, dtype=np.float64)
+            decided = found.labels != SHADOW_LABELS["undecided"]
+            labels = np.where(decided, np.where(lit >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]), found.labels)
+            views[stem] = dataclasses.replace(found, labels=labels.astype(np.uint8),
+                                              visibility=np.where(decided, lit, np.nan).astype(np.float32))
+        return dataclasses.replace(shared, views=views)
+
+    pipeline._multiview_labels = labelled
+    try:
+        yield
+    finally:
+        pipeline._multiview_labels = original
+
+
+def true_labels_scene(folder: Path) -> dict:
+    """Row (e) with Steps 3-4 fed the true shadow labels (:data:`TRUE_LABEL_ROWS`; an oracle study).
+
+    The multi-view labelling needs ``Config().shadow.method == "multiview"`` (the default); with the
+    paper's per-view labelling the study refuses to run.
+    """
+    if Config().shadow.method != "multiview":
+        raise ValueError("--true-labels replaces the multi-view labelling; the default config does not use it")
+    scene, tags, sky_mask = _relit_scene(folder, "--true-labels")
+    stems = scene.stems
+    tracer = Tracer(scene.proxy)
+    inputs = {v.stem: v.image for v in scene.views}
+    truth = read_ground_truth(folder, views=list(stems))
+    layers = {"pipeline": decompose(scene, tracer=tracer)}
+    with _true_shadow_labels(truth):
+        layers["true_labels"] = decompose(scene, tracer=tracer)
+    layers["gt"] = ground_truth_decomposition(folder, views=list(stems))
+    option = RelightConfig(lost_occluders=OccupancyConfig())
+    configs = {"": RelightConfig(), "_option": option,
+               "_option_labels_caster": dataclasses.replace(option, caster_pixels="labels")}
+    relighters = {f"{name}{suffix}": Relighter(layers[name], scene, config=config, tracer=tracer)
+                  for name in ("pipeline", "true_labels") for suffix, config in configs.items()}
+    relighters["gt_option"] = Relighter(layers["gt"], scene, config=option, tracer=tracer)
+    out = {"psnr": {}, "capture": {row: mean_psnr(r.render(r.sun), inputs, sky_mask)["mean"]
+                                   for row, r in relighters.items()}}
+    for tag, (direction, images, _) in tags.items():
+        rows = {"input": mean_psnr(inputs, images, sky_mask)["mean"]}
+        rows.update({row: mean_psnr(r.render(direction), images, sky_mask)["mean"] for row, r in relighters.items()})
+        out["psnr"][tag] = {row: rows[row] for row in TRUE_LABEL_ROWS}
+        print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in out["psnr"][tag].items()), flush=True)
+    return out
+
+
+def true_labels_summary(study: dict) -> dict:
+    """Per row of :data:`TRUE_LABEL_ROWS`, the mean over the scenes' +-15 degree suns of the row minus (a)."""
+    gains = {row: [entry["psnr"][tag][row] - entry["psnr"][tag]["input"] for entry in study.values()
+                   for tag in ("az+15", "az-15") if tag in entry["psnr"]] for row in TRUE_LABEL_ROWS[1:]}
+    return {row: {"minus_input_mean": float(np.mean(v)), "scene_suns": len(v)} for row, v in gains.items()}
+
+
 def lost_occluders_summary(study: dict) -> dict:
     """Means over the scenes' +-15 degree suns (the tags ``az+15``, ``az-15``) of (c) - (d) and (e) - (a)."""
     out = {}
@@ -1202,6 +1286,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only rows (a), (c)-(e) with and without RelightConfig.lost_occluders (lost_occluders_scene)")
     parser.add_argument("--sun-radiance", action="store_true",
                         help="only row (e) with the pipeline's L_sun replaced by the truth, its level or its colour")
+    parser.add_argument("--true-labels", action="store_true",
+                        help="only row (e) with Steps 3-4 fed the true shadow labels, three relighters (true_labels_scene)")
     parser.add_argument("--sky-pixels", action="store_true",
                         help="only compare RelightConfig.sky_pixels' modes on the sky pixels (sky_pixels_scene)")
     parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
@@ -1228,7 +1314,8 @@ def main(argv: list[str] | None = None) -> int:
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
                ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene),
-               ("lost_occluders", "lost_occluders", lost_occluders_scene), ("sun_radiance", "sun_radiance", sun_radiance_scene))
+               ("lost_occluders", "lost_occluders", lost_occluders_scene), ("sun_radiance", "sun_radiance", sun_radiance_scene),
+               ("true_labels", "true_labels", true_labels_scene))
     if args.proxy_variant:
         studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)
@@ -1250,6 +1337,8 @@ def main(argv: list[str] | None = None) -> int:
                 report["lost_occluders_summary"] = lost_occluders_summary(report[key])
             if key == "sun_radiance":
                 report["sun_radiance_summary"] = sun_radiance_summary(report[key])
+            if key == "true_labels":
+                report["true_labels_summary"] = true_labels_summary(report[key])
             if args.out:
                 write_json(args.out, report)
             return 0

@@ -135,11 +135,12 @@ class RelightConfig:
         tau_s`` outside its kept clusters count as dropped (:attr:`Caster.dropped`, relit as
         ``dropped`` says), so their captured darkness still goes into the reflectance with the
         paper's ``"light"``. For labels better than Step 3's: with the true labels in Steps 3-4
-        and ``lost_occluders``, row (e) of ``benchmarks/bench_relight.py`` rises by 1.7-2.0 dB
-        on demo_480 at +-15 degrees (the matting's soft ``v_sun`` below 0.8 at lit pixels joins
-        true shadows into clusters the rules drop whole) and by -0.04 to +0.36 dB on four other
-        scenes, (e) - (a) 2.51 -> 2.94 dB on average; with the pipeline's own labels it loses
-        (-0.46 to +0.08 dB), so not the default (``docs/relight.md``, "Perfect shadow labels").
+        and ``lost_occluders``, row (e) of ``benchmarks/bench_relight.py --true-labels`` rises by
+        1.7-1.9 dB on demo_480 at +-15 degrees (the matting's soft ``v_sun`` below 0.8 at lit
+        pixels joins true shadows into clusters the rules drop whole) and by -0.05 to +0.71 dB
+        on four other scenes, (e) - (a) 2.51 -> 3.01 dB on average; with Step 3's own labels it
+        loses (-0.31 to +0.09 dB), so not the default (``docs/relight.md``, "Perfect shadow
+        labels").
     epsilon : int
         A caster triangle first hit by more than ``epsilon`` sun rays from lit pixels is removed;
         >= 0. 3: "We used epsilon = 3 for all our results."

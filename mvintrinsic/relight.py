@@ -46,7 +46,7 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
 * the caster from the labelled shadow alone (beyond the paper, ``caster_pixels="labels"``, not the
   default): the pixels with ``v_sun < tau_s`` outside its kept clusters are dropped instead of
   lifted; for labels better than Step 3's (with the true labels and ``lost_occluders``, (e) - (a)
-  at +-15 degrees 2.51 -> 2.94 dB; with Step 3's labels it loses: ``docs/relight.md``);
+  at +-15 degrees 2.51 -> 3.01 dB; with Step 3's labels it loses: ``docs/relight.md``);
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new

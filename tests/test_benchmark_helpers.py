@@ -183,6 +183,53 @@ def test_lost_occluders_summary_averages_the_15_degree_suns():
     assert summary["lost_occluders"]["e_minus_a_min"] == -1.0
 
 
+def test_true_shadow_labels_replace_the_labelling_and_restore_it(monkeypatch):
+    # bench_relight --true-labels (an oracle): the multi-view labelling's output keeps its
+    # undecided pixels and takes the truth's labels (lit at v >= 0.5) and visibility elsewhere.
+    import dataclasses
+    from types import SimpleNamespace
+
+    import bench_relight
+
+    from mvintrinsic import pipeline
+
+    @dataclasses.dataclass(frozen=True)
+    class Found:
+        labels: np.ndarray
+        visibility: np.ndarray
+
+    @dataclasses.dataclass(frozen=True)
+    class Shared:
+        views: dict
+
+    found = np.array([[0, 255], [128, 255]], dtype=np.uint8)
+
+    def fake(scene, quantities, sun_radiance, *, config, timings, progress):
+        return Shared({"v": Found(found, np.full((2, 2), 0.5, np.float32))})
+
+    monkeypatch.setattr(pipeline, "_multiview_labels", fake)
+    truth = {"v": SimpleNamespace(sun_visibility=np.array([[1.0, 0.0], [0.0, 0.4]]))}
+    with bench_relight._true_shadow_labels(truth):
+        out = pipeline._multiview_labels(None, None, None, config=None, timings={}, progress=False)
+    assert pipeline._multiview_labels is fake
+    np.testing.assert_array_equal(out.views["v"].labels, [[255, 0], [128, 0]])
+    visibility = out.views["v"].visibility
+    assert visibility[0, 0] == 1.0 and visibility[0, 1] == 0.0 and np.isnan(visibility[1, 0])
+    assert visibility[1, 1] == pytest.approx(0.4)
+
+
+def test_true_labels_summary_averages_the_15_degree_suns():
+    import bench_relight
+
+    rows = {row: 22.0 for row in bench_relight.TRUE_LABEL_ROWS}
+    study = {"s": {"psnr": {"az+15": {**rows, "input": 20.0}, "az-15": {**rows, "input": 21.0, "pipeline": 25.0},
+                            "az+30": {**rows, "input": 0.0}}}}
+    summary = bench_relight.true_labels_summary(study)
+    assert summary["pipeline"] == {"minus_input_mean": 3.0, "scene_suns": 2}
+    assert summary["gt_option"]["minus_input_mean"] == 1.5
+    assert "input" not in summary
+
+
 def test_bench_stereo_smoke_selects_the_same_depth_maps_twice(capsys):
     import bench_stereo
 

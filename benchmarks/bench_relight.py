@@ -754,6 +754,9 @@ def _true_shadow_labels(truth: dict):
         views = {}
         for stem, found in shared.views.items():
             lit = np.asarray(truth[stem].sun_visibility, dtype=np.float64)
+            if lit.shape != found.labels.shape:
+                raise ValueError(f"{stem}: the labelling runs at {found.labels.shape}, gt/sun_visibility is {lit.shape}: "
+                                 "--true-labels needs the views decomposed at their own size")
             decided = found.labels != SHADOW_LABELS["undecided"]
             labels = np.where(decided, np.where(lit >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]), found.labels)
             views[stem] = dataclasses.replace(found, labels=labels.astype(np.uint8),

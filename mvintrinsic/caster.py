@@ -24,22 +24,19 @@ inconsistent receiver places over several lit pixels reach that count.
 
 Deviations from the paper, with their reasons
 ---------------------------------------------
-* **One quad per pixel footprint.** "We triangulate the shadow pixels in image space" is read as
-  a mesh over the kept pixels' *footprints*: each kept pixel is the quad (two triangles) between
-  its four pixel corners. A corner lies on the camera ray through it, at a receiver distance
-  ``s_c``, lifted by a caster distance ``t_c``; both average, over the kept pixels touching the
-  corner on the same surface as the pixel, each one's linear extrapolation to the corner. Two
-  kept pixels are on the same surface when their receiver distances differ by at most
-  :data:`SURFACE_JUMP` (5%) and their caster distances by at most :data:`CASTER_JUMP` (25%, or 8
-  pixel footprints). Neighbouring quads so share their corners (the sheet moves as one when the
-  sun moves), the outline's corners sit on the receiver, and across a jump the quads separate
-  instead of stretching. The plain reading (a vertex per shadow pixel centre) puts every outline
-  pixel on the mesh's edge, where its own ray hits or misses at float32 rounding. On
-  ``tests/test_relight.py``'s box-on-a-plane scene (96x72, exact proxy and shadow, 11 pairs of
-  camera and sun, elevations 30-65 degrees), the mean IoU with the exact shadow at the capture
-  sun and after 15 degrees of azimuth is 0.93 and 0.87 with a vertex per pixel centre, 0.92 and
-  0.89 with corners averaged without extrapolation, 0.97 and 0.65 with unshared quads, 0.97 and
-  0.93 with this construction (its two thresholds, module constants, chosen there).
+* **One quad per pixel footprint.** "We triangulate the shadow pixels in image space" is read as a mesh over the kept
+  pixels' *footprints*: each kept pixel is the quad (two triangles) between its four pixel corners. A corner lies on
+  the camera ray through it, at a receiver distance ``s_c``, lifted by a caster distance ``t_c``; both average, over
+  the kept pixels touching the corner on the same surface as the pixel, each one's linear extrapolation to the corner.
+  Two kept pixels are on the same surface when their receiver distances differ by at most :data:`SURFACE_JUMP` (5%)
+  and their caster distances by at most :data:`CASTER_JUMP` (25%, or 8 pixel footprints). Neighbouring quads so share
+  their corners (the sheet moves as one when the sun moves), the outline's corners sit on the receiver, and across a
+  jump the quads separate instead of stretching. The plain reading (a vertex per shadow pixel centre) puts every
+  outline pixel on the mesh's edge, where its own ray hits or misses at float32 rounding. On
+  ``tests/test_relight.py``'s box-on-a-plane scene (96x72, exact proxy and shadow, 11 pairs of camera and sun,
+  elevations 30-65 degrees), the mean IoU with the exact shadow at the capture sun and after 15 degrees of azimuth is
+  0.93 and 0.87 with a vertex per pixel centre, 0.92 and 0.89 with corners averaged without extrapolation, 0.97 and
+  0.65 with unshared quads, 0.97 and 0.93 with this construction (its two thresholds, module constants, chosen there).
 * **Cluster filtering before filling**: no kept pixel borrows a dropped cluster's distance; a
   cluster with no proxy hit is always dropped.
 * **Occluders the proxy lost** (:attr:`RelightConfig.lost_occluders`, :mod:`.photo_occupancy`).
@@ -126,136 +123,117 @@ class RelightConfig:
     Parameters
     ----------
     tau_s : float
-        A pixel with ``v_sun < tau_s`` counts as shadow besides the shadow labels; in [0, 1].
-        0.8: "We used tau_s = 0.8 for all our results."
+        A pixel with ``v_sun < tau_s`` counts as shadow besides the shadow labels; in [0, 1]. 0.8: "We used tau_s =
+        0.8 for all our results."
     caster_pixels : {"paper", "labels"}
-        The shadow pixels the caster is built from (:data:`CASTER_PIXEL_MODES`). ``"paper"``
-        (default): the labelled shadow or ``v_sun < tau_s``, all of them lifted (Sec. 8).
-        ``"labels"`` (beyond the paper): the labelled shadow alone; the pixels with ``v_sun <
-        tau_s`` outside its kept clusters count as dropped (:attr:`Caster.dropped`, relit as
-        ``dropped`` says), so their captured darkness still goes into the reflectance with the
-        paper's ``"light"``. For labels better than Step 3's: with the true labels in Steps 3-4
-        and ``lost_occluders``, row (e) of ``benchmarks/bench_relight.py --true-labels`` rises by
-        1.7-1.9 dB on demo_480 at +-15 degrees (the matting's soft ``v_sun`` below 0.8 at lit
-        pixels joins true shadows into clusters the rules drop whole) and by -0.05 to +0.71 dB
-        on four other scenes, (e) - (a) 2.51 -> 3.01 dB on average; with Step 3's own labels it
-        loses (-0.31 to +0.09 dB), so not the default (``docs/relight.md``, "Perfect shadow
-        labels").
+        The shadow pixels the caster is built from (:data:`CASTER_PIXEL_MODES`). ``"paper"`` (default, Sec. 8): the
+        labelled shadow or ``v_sun < tau_s``. ``"labels"`` (beyond the paper, for labels better than Step 3's): the
+        labelled shadow alone; the pixels with ``v_sun < tau_s`` outside its kept clusters are dropped
+        (:attr:`Caster.dropped`, relit as ``dropped`` says). With the true labels in Steps 3-4 and ``lost_occluders``,
+        (e) - (a) at +-15 degrees 2.51 -> 3.01 dB (``bench_relight.py --true-labels``; the matting's soft ``v_sun``
+        below 0.8 joins true shadows into clusters the rules drop whole); with Step 3's labels -0.31 to +0.09 dB, so
+        not the default (``docs/relight.md``, "Perfect shadow labels").
     epsilon : int
-        A caster triangle first hit by more than ``epsilon`` sun rays from lit pixels is removed;
-        >= 0. 3: "We used epsilon = 3 for all our results."
+        A caster triangle first hit by more than ``epsilon`` sun rays from lit pixels is removed; >= 0. 3: "We used
+        epsilon = 3 for all our results."
     min_cluster : int
-        Shadow clusters (8-connected) of fewer pixels are dropped; >= 1. 100: "less than 100
-        pixels".
+        Shadow clusters (8-connected) of fewer pixels are dropped; >= 1. 100: "less than 100 pixels".
     min_proxy_hits : float
-        Shadow clusters in which a smaller share of the pixels' sun rays hit the proxy are
-        dropped; in [0, 1]. 0.3: "less than 30% of the pixels yield an intersection".
+        Shadow clusters in which a smaller share of the pixels' sun rays hit the proxy are dropped; in [0, 1]. 0.3:
+        "less than 30% of the pixels yield an intersection".
     blur : float
-        Standard deviation, pixels, of the Gaussian blur of the new shadow layer (0: none); >= 0.
-        The paper applies "a small Gaussian blur" without a value; 1 pixel softens the edge to
-        about the width of a photographed penumbra at these resolutions and closes one-pixel
-        cracks. A per-pixel penumbra from the sun's angular size and the occluder distance
-        instead scored 0.08-1.07 dB lower, and added in quadrature to the 1 px within 0.01 dB of
-        it (``benchmarks/bench_relight.py --softness``, four 480x360 scenes, 20 suns).
+        Standard deviation, pixels, of the Gaussian blur of the new shadow layer (0: none); >= 0. The paper applies "a
+        small Gaussian blur" without a value; 1 pixel softens the edge to about the width of a photographed penumbra
+        at these resolutions and closes one-pixel cracks. A per-pixel penumbra from the sun's angular size and the
+        occluder distance instead scored 0.08-1.07 dB lower, and added in quadrature to the 1 px within 0.01 dB of it
+        (``benchmarks/bench_relight.py --softness``, four 480x360 scenes, 20 suns).
     ray_offset : float
-        Metres a sun ray starts from its receiver point along the sun direction, against
-        self-intersection; >= 0. Not in the paper; 0.02 as Step 1's ``ray_offset`` (about a TSDF
-        voxel).
+        Metres a sun ray starts from its receiver point along the sun direction, against self-intersection; >= 0. Not
+        in the paper; 0.02 as Step 1's ``ray_offset`` (about a TSDF voxel).
     normal_smoothing : float
-        Standard deviation (metres) of the smoothing of the proxy's vertex normals that give the
-        receivers' ``max(0, cos w_sun)`` and the proxy's sun visibility at the new sun
-        (:func:`mvintrinsic.raytrace.smooth_normals`); >= 0, 0: the proxy's own normals. Not in
-        the paper; 0.4 as Step 1's :attr:`~mvintrinsic.env_shading.Step1Config.normal_smoothing`,
-        so that the relit ``S_sun`` uses the normals the decomposition used.
+        Standard deviation (metres) of the smoothing of the proxy's vertex normals that give the receivers' ``max(0,
+        cos w_sun)`` and the proxy's sun visibility at the new sun (:func:`mvintrinsic.raytrace.smooth_normals`); >=
+        0, 0: the proxy's own normals. Not in the paper; 0.4 as Step 1's
+        :attr:`~mvintrinsic.env_shading.Step1Config.normal_smoothing`, so that the relit ``S_sun`` uses the normals
+        the decomposition used.
     sky : {"model", "paper"}
-        How the environment shading follows the sun (:data:`SKY_ADJUSTMENTS`, module docstring,
-        "Adjusting shading"). ``"paper"``: our reading of the paper's adjustment, a red shift of
-        ``S_sky`` and ``S_ind`` scaled like the horizontal sun irradiance
-        (:func:`paper_environment_factors`). ``"model"``: ``S_sky`` scaled per pixel normal by
-        the fitted sky model's irradiance at the new sun over the old one
-        (:func:`sky_irradiance_ratio`), ``S_ind`` by the change of the sun irradiance on the
-        receivers. Default ``"paper"``: neither wins on every scene (``docs/relight.md``).
+        How the environment shading follows the sun (:data:`SKY_ADJUSTMENTS`, module docstring, "Adjusting shading").
+        ``"paper"``: our reading of the paper's adjustment, a red shift of ``S_sky`` and ``S_ind`` scaled like the
+        horizontal sun irradiance (:func:`paper_environment_factors`). ``"model"``: ``S_sky`` scaled per pixel normal
+        by the fitted sky model's irradiance at the new sun over the old one (:func:`sky_irradiance_ratio`), ``S_ind``
+        by the change of the sun irradiance on the receivers. Default ``"paper"``: neither wins on every scene
+        (``docs/relight.md``).
     sky_pixels : {"paper", "model", "input"}
-        How the pixels without an estimate that look at the sky (their ray misses the proxy above
-        the horizon) change colour (:data:`SKY_PIXEL_MODES`, :func:`sky_pixel_factors`): the
-        paper's red shift near the horizon (default: never below ``"input"`` on seven scenes, 0.6
-        to 1.5 dB above it at a higher sun), the fitted sky's radiance ratio, or the input's.
+        How the pixels without an estimate that look at the sky (their ray misses the proxy above the horizon) change
+        colour (:data:`SKY_PIXEL_MODES`, :func:`sky_pixel_factors`): the paper's red shift near the horizon (default:
+        never below ``"input"`` on seven scenes, 0.6 to 1.5 dB above it at a higher sun), the fitted sky's radiance
+        ratio, or the input's.
     turbidity : float
-        Turbidity of the sky model used by ``sky="model"`` when the decomposition carries no
-        fitted sky (``decomposition.lighting.sky is None``, e.g. a ground truth); > 0. 3.5,
-        Step 1's starting value (:class:`~mvintrinsic.skymodel.SkyConfig`), "the turbidity of a
-        clear sky". Only the shape of the sky matters: its scale cancels in the ratio.
+        Turbidity of the sky model used by ``sky="model"`` when the decomposition carries no fitted sky
+        (``decomposition.lighting.sky is None``, e.g. a ground truth); > 0. 3.5, Step 1's starting value
+        (:class:`~mvintrinsic.skymodel.SkyConfig`), "the turbidity of a clear sky". Only the shape of the sky matters:
+        its scale cancels in the ratio.
     dropped : {"light", "static", "none"}
-        How the pixels of dropped shadow clusters (too small or unsupported by the proxy,
-        :func:`build_caster`: their occluder is unknown) are relit (:data:`DROPPED_MODES`).
-        ``"light"`` (default, the paper, "We adjust the reflectance of such pixels to bring them
-        in light using the v_sun layer"): their ``v_sun`` becomes 1 and their reflectance
-        ``I / (S_sun + S_sky + S_ind)``, so the captured shadow stays in the reflectance and the
-        shadow layer calls them lit (:class:`Relighter`). ``"static"`` (beyond the paper): their
-        shadow stays in the shadow layer: at every sun their ``v'`` is their capture ``v_sun``
-        times the caster's, and their reflectance is the layers' (every view's shadow layer then
-        shows the shadow its image shows). ``"none"``: the layers as they are, these pixels
-        moved by the caster like every other (their shadow leaves: for layers whose shadow layer
-        is given at every sun, as the benchmark's rows with the true shadows).
+        How the pixels of dropped shadow clusters (too small or unsupported by the proxy, :func:`build_caster`: their
+        occluder is unknown) are relit (:data:`DROPPED_MODES`). ``"light"`` (default, the paper, "We adjust the
+        reflectance of such pixels to bring them in light using the v_sun layer"): their ``v_sun`` becomes 1 and their
+        reflectance ``I / (S_sun + S_sky + S_ind)``, so the captured shadow stays in the reflectance and the shadow
+        layer calls them lit (:class:`Relighter`). ``"static"`` (beyond the paper): their shadow stays in the shadow
+        layer: at every sun their ``v'`` is their capture ``v_sun`` times the caster's, and their reflectance is the
+        layers' (every view's shadow layer then shows the shadow its image shows). ``"none"``: the layers as they are,
+        these pixels moved by the caster like every other (their shadow leaves: for layers whose shadow layer is given
+        at every sun, as the benchmark's rows with the true shadows).
     method : {"multiview", "paper"}
-        How the views' evidence is used (:data:`RELIGHT_METHODS`, module docstring, "Votes of
-        every view"). ``"paper"``: each view's caster is checked against that view's lit pixels
-        only, and the proxy completes every shadow it casts on primitives the caster does not
-        stand for. ``"multiview"`` (default, beyond the paper): the lit pixels of *every* view
-        vote against every caster triangle and against every proxy triangle (a proxy triangle
-        first hit by more than ``epsilon`` of their capture-sun rays casts no completion
-        shadow), and the completion ignores proxy hits nearer than ``completion_distance``.
-        Chosen by measurement (``benchmarks/bench_relight.py``, module docstring).
+        How the views' evidence is used (:data:`RELIGHT_METHODS`, module docstring, "Votes of every view").
+        ``"paper"``: each view's caster is checked against that view's lit pixels only, and the proxy completes every
+        shadow it casts on primitives the caster does not stand for. ``"multiview"`` (default, beyond the paper): the
+        lit pixels of *every* view vote against every caster triangle and against every proxy triangle (a proxy
+        triangle first hit by more than ``epsilon`` of their capture-sun rays casts no completion shadow), and the
+        completion ignores proxy hits nearer than ``completion_distance``. Chosen by measurement
+        (``benchmarks/bench_relight.py``, module docstring).
     casters : {"own", "merged"}
-        ``"own"`` (default): every view is shaded by its own caster, as in the paper (its votes
-        still come from every view with ``method="multiview"``). ``"merged"``: one caster, the
-        union of all the views' (:func:`merge_casters`), shades every view. Chosen by
-        measurement: other views' caster pieces shade lit pixels of a view (module docstring).
+        ``"own"`` (default): every view is shaded by its own caster, as in the paper (its votes still come from every
+        view with ``method="multiview"``). ``"merged"``: one caster, the union of all the views'
+        (:func:`merge_casters`), shades every view. Chosen by measurement: other views' caster pieces shade lit pixels
+        of a view (module docstring).
     completion_distance : float or "auto"
-        ``method="multiview"``: proxy hits nearer than this many metres along the new sun ray
-        complete no shadow; >= 0. Self-shadowing by the proxy's own reconstruction noise sits
-        there, while the short-range shadows the image shows (recesses, ledges) are already in
-        the caster. ``"auto"`` (default, beyond the paper): :data:`AUTO_COMPLETION_DISTANCE`
-        (0.6; 0.3, 0.6 and 1.0 measured, module docstring) when the proxy shades itself
-        (:func:`proxy_self_shading`: at least :data:`SELF_SHADING_SHARE` of the lit pixels' sun
-        rays hit the proxy within that distance at the capture sun), else 0: an exact proxy keeps
-        its near shadows (:func:`choose_completion_distance`).
+        ``method="multiview"``: proxy hits nearer than this many metres along the new sun ray complete no shadow; >=
+        0. Self-shadowing by the proxy's own reconstruction noise sits there, while the short-range shadows the image
+        shows (recesses, ledges) are already in the caster. ``"auto"`` (default, beyond the paper):
+        :data:`AUTO_COMPLETION_DISTANCE` (0.6; 0.3, 0.6 and 1.0 measured, module docstring) when the proxy shades
+        itself (:func:`proxy_self_shading`: at least :data:`SELF_SHADING_SHARE` of the lit pixels' sun rays hit the
+        proxy within that distance at the capture sun), else 0: an exact proxy keeps its near shadows
+        (:func:`choose_completion_distance`).
     ray_stride : int
-        The new sun's shadow rays are cast from every ``ray_stride``-th pixel along both image
-        axes, then from every pixel of the cells whose four sampled corners disagree (a shadow
-        edge crosses them) and of their neighbour cells; a cell far from any such cell takes
-        its corners' state. 1 casts from every pixel; >= 1. Not in the paper: the ray budget is
-        spent only where the visibility varies, which halves the shadow time of a new sun at
-        1000x750, while a shadow thinner than ``ray_stride`` pixels that touches no sampled
-        pixel, far from any other edge, is lost (module docstring, "Speed": 2 changes the relit
-        PSNR by -0.010 to +0.007 dB against 1).
+        The new sun's shadow rays are cast from every ``ray_stride``-th pixel along both image axes, then from every
+        pixel of the cells whose four sampled corners disagree (a shadow edge crosses them) and of their neighbour
+        cells; a cell far from any such cell takes its corners' state. 1 casts from every pixel; >= 1. Not in the
+        paper: the ray budget is spent only where the visibility varies, which halves the shadow time of a new sun at
+        1000x750, while a shadow thinner than ``ray_stride`` pixels that touches no sampled pixel, far from any other
+        edge, is lost (module docstring, "Speed": 2 changes the relit PSNR by -0.010 to +0.007 dB against 1).
     consistency : float or None
-        A pixel the proxy does not explain keeps its capture ``v_sun`` at every new sun: its
-        colour is at least ``consistency`` (median over the channels of ``|log I - log I_o|``,
-        both in the decomposition's common exposure) from what each of the other views that see
-        its receiver point (occlusion-tested) sees there, ``I_o``, or its ray misses the proxy.
-        There the receiver point is not the surface the photograph shows (a crown in front of the
-        facade the proxy kept), so the receiver's new shadow says nothing about the pixel. > 0; None:
-        every pixel takes the moved shadow (the paper). Not in the paper; 0.3 as
-        :attr:`~mvintrinsic.occluders.OccluderConfig.consistency`, not tuned. Chosen by
-        measurement (module docstring of :mod:`mvintrinsic.relight`, "Pixels the proxy does not
-        explain").
+        A pixel the proxy does not explain keeps its capture ``v_sun`` at every new sun: its colour is at least
+        ``consistency`` (median over the channels of ``|log I - log I_o|``, both in the decomposition's common
+        exposure) from what each of the other views that see its receiver point (occlusion-tested) sees there,
+        ``I_o``, or its ray misses the proxy. There the receiver point is not the surface the photograph shows (a
+        crown in front of the facade the proxy kept), so the receiver's new shadow says nothing about the pixel. > 0;
+        None: every pixel takes the moved shadow (the paper). Not in the paper; 0.3 as
+        :attr:`~mvintrinsic.occluders.OccluderConfig.consistency`, not tuned. Chosen by measurement (module docstring
+        of :mod:`mvintrinsic.relight`, "Pixels the proxy does not explain").
     fusion : {"capture", "all"} or None
-        The new ``v'`` of a pixel is the mean of its own and of the other views' ``v'`` at the
-        pixels that see its receiver point (depth-tested, as for ``consistency``), over the
-        pixels the proxy explains on both sides (not flagged by ``consistency``; with
-        ``consistency=None``, every pixel whose ray hits the proxy), weight 1 each:
-        ``"capture"`` (default) only the views whose capture state there (``v_sun >= 0.5``) is the
-        pixel's own, so that each view's reflectance, which its own label made, meets the
-        shadow state it was made for; ``"all"`` every such view (the relit shadow state agrees
-        more across views, the relit images are further from the truth where the views' labels
-        disagree); None: each view alone (the paper). Not in the paper (module docstring of
+        The new ``v'`` of a pixel is the mean of its own and of the other views' ``v'`` at the pixels that see its
+        receiver point (depth-tested, as for ``consistency``), over the pixels the proxy explains on both sides (not
+        flagged by ``consistency``; with ``consistency=None``, every pixel whose ray hits the proxy), weight 1 each:
+        ``"capture"`` (default) only the views whose capture state there (``v_sun >= 0.5``) is the pixel's own, so
+        that each view's reflectance, which its own label made, meets the shadow state it was made for; ``"all"``
+        every such view (the relit shadow state agrees more across views, the relit images are further from the truth
+        where the views' labels disagree); None: each view alone (the paper). Not in the paper (module docstring of
         :mod:`mvintrinsic.relight`, "One shadow in every view").
     lost_occluders : OccupancyConfig or None
-        A shadow pixel another view confirms whose sun ray misses the proxy takes the distance at which
-        the photographs see what the proxy lacks along it (a hit for the cluster rules, then at least
-        ``min_hits``; :mod:`mvintrinsic.photo_occupancy`; beyond the paper; inert with fewer views than
-        ``min_views``). None (default): the paper. Measured in ``docs/relight.md``.
+        A shadow pixel another view confirms whose sun ray misses the proxy takes the distance at which the
+        photographs see what the proxy lacks along it (a hit for the cluster rules, then at least ``min_hits``;
+        :mod:`mvintrinsic.photo_occupancy`; beyond the paper; inert with fewer views than ``min_views``). None
+        (default): the paper. Measured in ``docs/relight.md``.
     """
 
     tau_s: float = 0.8

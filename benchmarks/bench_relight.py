@@ -722,11 +722,17 @@ def sun_radiance_scene(folder: Path) -> dict:
     return out
 
 
-def sun_radiance_summary(study: dict) -> dict:
-    """Per row of :data:`SUN_RADIANCE_ROWS`, the mean over the scenes' +-15 degree suns of the row minus (a)."""
+def _minus_input_at_15(study: dict, rows: Sequence[str]) -> dict:
+    """Per row of ``rows`` (after ``"input"``), the mean over the scenes' +-15 degree suns of the row minus (a);
+    ``study``: scene -> ``{"psnr": {tag: {row: dB}}}``."""
     gains = {row: [entry["psnr"][tag][row] - entry["psnr"][tag]["input"] for entry in study.values()
-                   for tag in ("az+15", "az-15") if tag in entry["psnr"]] for row in SUN_RADIANCE_ROWS[1:]}
+                   for tag in ("az+15", "az-15") if tag in entry["psnr"]] for row in rows[1:]}
     return {row: {"minus_input_mean": float(np.mean(v)), "scene_suns": len(v)} for row, v in gains.items()}
+
+
+def sun_radiance_summary(study: dict) -> dict:
+    """:func:`_minus_input_at_15` of the rows :data:`SUN_RADIANCE_ROWS`."""
+    return _minus_input_at_15(study, SUN_RADIANCE_ROWS)
 
 
 #: The rows of ``--true-labels`` (:func:`true_labels_scene`): the layers (``pipeline``: Steps 1-4 as they
@@ -804,10 +810,8 @@ def true_labels_scene(folder: Path) -> dict:
 
 
 def true_labels_summary(study: dict) -> dict:
-    """Per row of :data:`TRUE_LABEL_ROWS`, the mean over the scenes' +-15 degree suns of the row minus (a)."""
-    gains = {row: [entry["psnr"][tag][row] - entry["psnr"][tag]["input"] for entry in study.values()
-                   for tag in ("az+15", "az-15") if tag in entry["psnr"]] for row in TRUE_LABEL_ROWS[1:]}
-    return {row: {"minus_input_mean": float(np.mean(v)), "scene_suns": len(v)} for row, v in gains.items()}
+    """:func:`_minus_input_at_15` of the rows :data:`TRUE_LABEL_ROWS`."""
+    return _minus_input_at_15(study, TRUE_LABEL_ROWS)
 
 
 def lost_occluders_summary(study: dict) -> dict:

@@ -314,7 +314,8 @@ class Caster:
         The shadow pixels the caster was built from (kept clusters); ``None`` for a merged caster.
     dropped : (H, W) bool or None
         Shadow pixels of the dropped clusters (too small, or too few proxy hits): mislabellings the
-        paper brings back into light; ``None`` for a merged caster.
+        paper brings back into light (and, in a :class:`~mvintrinsic.relight.Relighter` with
+        ``caster_pixels="labels"``, the ``v_sun < tau_s`` pixels it did not lift); ``None`` for a merged caster.
     n_clusters : int
         Number of 8-connected shadow clusters in the input mask.
     n_small : int

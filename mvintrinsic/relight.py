@@ -500,7 +500,7 @@ class Relighter:
             distance = None if occupancy is None else occupancy.sun_ray_distance(index, receivers[stem], asked=missed)
             casters[stem] = build_caster(camera, lifted, receivers[stem], capture, tracer, lit=lit, up=up,
                                          config=rule, batch=batch, occluder_distance=distance)
-            if lifted is not shadow:
+            if config.caster_pixels == "labels":
                 casters[stem] = replace(casters[stem], dropped=shadow & ~casters[stem].shadow)
             timings["casters"] += time.perf_counter() - start
             r, v = layers.reflectance, layers.visibility

@@ -38,8 +38,8 @@ from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
 from .scene import View
 
-__all__ = ["Agreement", "Correspondences", "ReflectanceSpread", "cross_view_agreement", "cross_view_reflectance_spread",
-           "find_correspondences", "fuse_views", "log_image", "surface_points"]
+__all__ = ["Agreement", "Correspondences", "ReflectanceSpread", "consensus", "cross_view_agreement",
+           "cross_view_reflectance_spread", "find_correspondences", "fuse_views", "log_image", "surface_points"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -480,3 +480,40 @@ def cross_view_reflectance_spread(
     return ReflectanceSpread(median=tuple(float(x) for x in np.median(deviation, axis=0)),
                              p90=tuple(float(x) for x in np.percentile(deviation, 90, axis=0)),
                              points=int(twice.sum()), points_tested=flat.shape[1])
+
+
+def consensus(lit: Mapping[str, np.ndarray], correspondences: Correspondences,
+              valid: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """One pass of the cross-view majority vote on binary labels.
+
+    Every pixel with consistent correspondences (:attr:`Correspondences.consistent`) takes the
+    label carried by most of them and itself, keeping its own on a tie; all views are updated at
+    once from the same input, so the result does not depend on the order of the views.
+
+    Parameters
+    ----------
+    lit : mapping of str to (H, W) bool
+        Labels per view (True: lit).
+    correspondences : Correspondences
+    valid : mapping of str to (H, W) bool, optional
+        Pixels whose labels count; an invalid pixel neither votes nor changes.
+
+    Returns
+    -------
+    dict of str to (H, W) bool
+    """
+    if not isinstance(correspondences, Correspondences):
+        raise TypeError(f"correspondences must be Correspondences, got {describe(correspondences)}")
+    out = {}
+    for stem in correspondences.stems:
+        own = np.asarray(lit[stem], dtype=bool).ravel()
+        ok = np.ones(own.shape, bool) if valid is None else np.asarray(valid[stem], dtype=bool).ravel()
+        votes = np.where(own, 1, -1) * ok
+        for other in correspondences.pairs(stem):
+            k = np.flatnonzero(correspondences.consistent[stem, other] & ok)
+            j = correspondences.index[stem, other][k]
+            partner_ok = np.ones(len(j), bool) if valid is None else np.asarray(valid[other], bool).ravel()[j]
+            votes[k] += np.where(np.asarray(lit[other], dtype=bool).ravel()[j], 1, -1) * partner_ok
+        new = np.where(votes > 0, True, np.where(votes < 0, False, own))
+        out[stem] = np.where(ok, new, own).reshape(np.shape(lit[stem]))
+    return out

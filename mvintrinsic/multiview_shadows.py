@@ -38,7 +38,10 @@ Per view, a score ``s(p)`` (> 0 favours lit) sums four terms:
    ``albedo_weight (max_c(r_0 - log albedo_max)_+ - max_c(r_1 - log albedo_max)_+)``.
 4. **Proxy prior** (Step 1's ``~v``): ``prior_lit (2 ~v - 1)`` where ``~v >= 1/2``,
    ``prior_shadow (2 ~v - 1)`` below. Asymmetric: an MVS proxy loses casters (foliage, poles) far
-   more often than it invents them, so its shadows are trusted more than its light.
+   more often than it invents them, so its shadows are trusted more than its light. Beyond that
+   (``clear_rays``, not in the paper): where the photographs see the sun ray's path free, no lost
+   caster stands on it, and the proxy's light gets ``clear_rays.prior`` instead of ``prior_lit``
+   (:func:`mvintrinsic.photo_occupancy.clear_sun_rays`; with ``sun_direction`` only).
 
 **All views at once.** Before each labelling the scores are averaged over every pixel and the
 pixels of the other views that see the same proxy point and agree with it in colour
@@ -57,7 +60,8 @@ reflectance histogram and the visibility), stopping early when no label changes.
 
 **Consensus.** Fused scores still leave views that disagree along a shadow's edge, where one
 view's pixel straddles it and another's does not. A last majority vote over each pixel and its
-consistent correspondences (:func:`consensus`, ``consensus_passes``) settles those.
+consistent correspondences (:func:`~mvintrinsic.correspondence.consensus`, ``consensus_passes``)
+settles those.
 
 Everything pooled over views runs in stem order, so the labels do not depend on the order in which
 the views are given. The per-pixel most probable visibility of the last palette is returned too
@@ -90,7 +94,8 @@ import numpy as np
 from scipy import ndimage
 
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
-from .correspondence import Correspondences, _check_views, find_correspondences, fuse_views, log_image
+from .correspondence import Correspondences, _check_views, consensus, find_correspondences, fuse_views, log_image
+from .photo_occupancy import ClearRaysConfig, clear_sun_rays
 from .pixels import PixelQuantities
 from .results import SHADOW_LABELS
 from .scene import View
@@ -192,6 +197,10 @@ class MultiViewShadowConfig:
         consistent correspondences takes the label most of them and itself carry (its own on a
         tie), all views at once. Fusing the scores leaves views that disagree near a shadow's edge,
         where a pixel straddles it; the consensus makes the views agree there.
+    clear_rays : ClearRaysConfig or None
+        The lit prior where the photographs see the sun ray free (term 4;
+        :class:`~mvintrinsic.photo_occupancy.ClearRaysConfig`); None: ``prior_lit`` everywhere (the
+        labelling before it). Used when :func:`label_shadows_multiview` is given the sun's direction.
     """
 
     iterations: int = 3
@@ -218,6 +227,7 @@ class MultiViewShadowConfig:
     palette_groups: str = "orientation"
     edge_blur: float = 0.7
     consensus_passes: int = 1
+    clear_rays: ClearRaysConfig | None = ClearRaysConfig()
 
     def __post_init__(self) -> None:
         for name, least in (("iterations", 0), ("consensus_passes", 0), ("visibility_levels", 2),
@@ -244,6 +254,8 @@ class MultiViewShadowConfig:
                 raise ValueError(f"{name} must be a positive finite number, got {value!r}")
         if not is_real(self.edge_blur) or not 0 <= self.edge_blur < np.inf:
             raise ValueError(f"edge_blur must be a finite number >= 0, got {self.edge_blur!r}")
+        if self.clear_rays is not None and not isinstance(self.clear_rays, ClearRaysConfig):
+            raise TypeError(f"clear_rays must be a ClearRaysConfig or None, got {describe(self.clear_rays)}")
         if self.palette_groups not in PALETTE_GROUPS:
             raise ValueError(f"palette_groups must be one of {list(PALETTE_GROUPS)}, got {self.palette_groups!r}")
 
@@ -718,6 +730,7 @@ def label_shadows_multiview(
     config: MultiViewShadowConfig | None = None,
     correspondences: Correspondences | None = None,
     up: np.ndarray = (0.0, 0.0, 1.0),
+    sun_direction: np.ndarray | None = None,
     progress: bool = False,
 ) -> MultiViewShadowLabels:
     """Label every pixel of every view as lit or in shadow, all views at once (module docstring).
@@ -734,6 +747,9 @@ def label_shadows_multiview(
     config : MultiViewShadowConfig, optional
     correspondences : Correspondences, optional
         Reuse correspondences found before; found with the config's tolerances otherwise.
+    sun_direction : (3,) array_like, optional
+        Unit vector toward the sun, world frame: with it (and ``config.clear_rays``) the proxy's lit
+        prior is ``clear_rays.prior`` where the photographs see the sun ray free (term 4).
     progress : bool, optional
         tqdm progress bar over the rounds.
 
@@ -752,7 +768,8 @@ def label_shadows_multiview(
     config = config_or_default(config, MultiViewShadowConfig)
     ordered = _check_views(views, quantities)
     radiance = _check_sun(sun_radiance)
-    timings = dict.fromkeys(("evidence", "correspondences", "palette", "fusion", "graph_cut", "consensus"), 0.0)
+    timings = dict.fromkeys(("evidence", "clear_rays", "correspondences", "palette", "fusion", "graph_cut",
+                             "consensus"), 0.0)
     stems = [v.stem for v in ordered]
 
     if not (radiance > 0).any():
@@ -773,6 +790,14 @@ def label_shadows_multiview(
         offsets = edge_offsets(tuple(k * r for r in config.edge_radii), config.edge_directions)
         evidence[v.stem] = _evidence(v, quantities[v.stem], radiance, config, offsets, up)
     timings["evidence"] = time.perf_counter() - start
+    if config.clear_rays is not None and sun_direction is not None:  # term 4 where the photos see the sun ray free
+        start = time.perf_counter()
+        clear = clear_sun_rays(ordered, quantities, as_unit_vector(sun_direction, "sun_direction"),
+                               config=config.clear_rays)
+        for stem, e in evidence.items():
+            lit = np.clip(np.asarray(quantities[stem].visibility, dtype=np.float64), 0.0, 1.0) * 2.0 - 1.0
+            e.base = e.base + (config.clear_rays.prior - config.prior_lit) * np.where(clear[stem], lit, 0.0)
+        timings["clear_rays"] = time.perf_counter() - start
 
     use_views = len(ordered) > 1 and config.view_weight > 0
     if use_views and correspondences is None:
@@ -854,43 +879,6 @@ def label_shadows_multiview(
         out[view.stem] = _freeze(view.stem, labels, visibility[view.stem], np.where(e.valid, scores[view.stem], 0.0))
     return MultiViewShadowLabels(views=MappingProxyType(out), palette=palette, correspondences=correspondences,
                                  changed=tuple(changed), timings=MappingProxyType(timings))
-
-
-def consensus(lit: Mapping[str, np.ndarray], correspondences: Correspondences,
-              valid: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
-    """One pass of the cross-view majority vote on binary labels.
-
-    Every pixel with consistent correspondences (:attr:`Correspondences.consistent`) takes the
-    label carried by most of them and itself, keeping its own on a tie; all views are updated at
-    once from the same input, so the result does not depend on the order of the views.
-
-    Parameters
-    ----------
-    lit : mapping of str to (H, W) bool
-        Labels per view (True: lit).
-    correspondences : Correspondences
-    valid : mapping of str to (H, W) bool, optional
-        Pixels whose labels count; an invalid pixel neither votes nor changes.
-
-    Returns
-    -------
-    dict of str to (H, W) bool
-    """
-    if not isinstance(correspondences, Correspondences):
-        raise TypeError(f"correspondences must be Correspondences, got {describe(correspondences)}")
-    out = {}
-    for stem in correspondences.stems:
-        own = np.asarray(lit[stem], dtype=bool).ravel()
-        ok = np.ones(own.shape, bool) if valid is None else np.asarray(valid[stem], dtype=bool).ravel()
-        votes = np.where(own, 1, -1) * ok
-        for other in correspondences.pairs(stem):
-            k = np.flatnonzero(correspondences.consistent[stem, other] & ok)
-            j = correspondences.index[stem, other][k]
-            partner_ok = np.ones(len(j), bool) if valid is None else np.asarray(valid[other], bool).ravel()[j]
-            votes[k] += np.where(np.asarray(lit[other], dtype=bool).ravel()[j], 1, -1) * partner_ok
-        new = np.where(votes > 0, True, np.where(votes < 0, False, own))
-        out[stem] = np.where(ok, new, own).reshape(np.shape(lit[stem]))
-    return out
 
 
 def _freeze(stem: str, labels: np.ndarray, visibility: np.ndarray, score: np.ndarray) -> PixelShadowLabels:

@@ -59,6 +59,7 @@ from .model_choice import (
 )
 from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, PixelShadowLabels, label_shadows_multiview
 from .occluders import OccluderConfig, carve_occluders, occluded_step1, seen_occluders, smooth_occluder_reflectance
+from .photo_occupancy import ClearRaysConfig, OccupancyConfig
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
 from .raytrace import Tracer, depth_map
 from .resolution import downscale_scene, upsample_layers
@@ -253,7 +254,8 @@ BALANCED_SIDE = 640
 _NESTED = {"step1": Step1Config, "exposure": ExposureConfig, "sun": SunConfig, "sky": SkyConfig,
            "segmentation": SegmentationConfig,
            "shadow": ShadowConfig, "multiview": MultiViewShadowConfig, "matting": MattingConfig,
-           "env_refine": EnvRefineConfig, "occluders": OccluderConfig}
+           "env_refine": EnvRefineConfig, "occluders": OccluderConfig, "clear_rays": ClearRaysConfig,
+           "occupancy": OccupancyConfig}
 
 
 def _from_dict(kind: type, data: Mapping[str, Any], where: str) -> Any:
@@ -507,7 +509,7 @@ def _multiview_labels(scene: Scene, quantities: Mapping[str, PixelQuantities], s
         return None
     start = time.perf_counter()
     shared = label_shadows_multiview(scene.views, quantities, sun_radiance, config=config.multiview,
-                                     up=scene.up, progress=progress)
+                                     up=scene.up, sun_direction=scene.sun.direction, progress=progress)
     timings["shadow_labels"] = time.perf_counter() - start
     timings.update({f"shadow_labels.{k}": v for k, v in shared.timings.items()})
     return shared

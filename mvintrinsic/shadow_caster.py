@@ -84,9 +84,8 @@ from scipy import ndimage, sparse
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
 from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array, _rays
-from .correspondence import seen_pixels
 from .envmap import horizontal_frame
-from .photo_occupancy import unexplained_pixels
+from .photo_occupancy import nearest_colour, shared_receivers, unexplained_pixels
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, RayHits, Tracer, triangle_scene, vertex_normals
 from .results import Decomposition
@@ -499,53 +498,9 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
 
 def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray], hits: Mapping[str, RayHits],
                       depth_tolerance: float = 0.02) -> dict[str, list[tuple[int, np.ndarray, np.ndarray]]]:
-    """Per view, the other views' pixels that see its pixels' receiver points.
-
-    A pixel whose ray hits the proxy has its receiver point projected into every other view;
-    where that view sees it (:func:`~mvintrinsic.correspondence.seen_pixels`: in the image, in
-    front of the camera, on a valid pixel whose own ray hits the proxy at a depth within
-    ``depth_tolerance`` of the point's distance), that view's pixel (nearest) sees the same proxy
-    point.
-
-    Returns
-    -------
-    dict of str to list of (int, (K,) int64, (K,) int64)
-        Per view stem, per other view: its index in ``views``, the flat indices of the view's
-        pixels (ascending) and those of the other view's pixels that see them.
-    """
-    depths = {v.stem: hits[v.stem].t.reshape(v.shape) for v in views}
-    usable = {v.stem: v.mask & hits[v.stem].hit.reshape(v.shape) for v in views}
-    out = {}
-    for view in views:
-        own = np.flatnonzero(hits[view.stem].hit)
-        points = receivers[view.stem].reshape(-1, 3)[own]
-        links = []
-        for k, other in enumerate(views):
-            if other.stem != view.stem:
-                seen, flat = seen_pixels(other.camera, depths[other.stem], usable[other.stem], points, depth_tolerance)
-                links.append((k, own[seen], flat[seen]))
-        out[view.stem] = links
-    return out
-
-
-def _nearest_colour(views: Sequence[View], gains: Mapping[str, np.ndarray],
-                    shared: Mapping[str, list[tuple[int, np.ndarray, np.ndarray]]]) -> dict[str, np.ndarray]:
-    """Per view, the smallest distance from each pixel's colour to what another view sees at its
-    receiver point (``shared``, :func:`_shared_receivers`), (H, W) float32; ``inf`` where no other
-    view sees it. The distance is the median over the channels of ``|log(I + 1e-3) - log(I_other +
-    1e-3)|``, every image divided by its exposure gain (``gains``, the decomposition's
-    ``lighting.gain``)."""
-    logs = {v.stem: np.log(np.maximum(np.asarray(v.image, np.float32) / np.asarray(gains[v.stem], np.float32), 0.0)
-                           + np.float32(1e-3)).reshape(-1, 3) for v in views}
-    out = {}
-    for view in views:
-        own_logs = logs[view.stem]
-        nearest = np.full(len(own_logs), np.inf, dtype=np.float32)
-        for k, own, theirs in shared[view.stem]:  # a pixel appears at most once per other view
-            distance = np.median(np.abs(own_logs[own] - logs[views[k].stem][theirs]), axis=-1)
-            nearest[own] = np.minimum(nearest[own], distance)
-        out[view.stem] = nearest.reshape(view.shape)
-    return out
+    """:func:`~mvintrinsic.photo_occupancy.shared_receivers` with the camera rays' hits (``hits``) as the depths."""
+    return shared_receivers(views, receivers, {v.stem: hits[v.stem].t.reshape(v.shape) for v in views},
+                            depth_tolerance=depth_tolerance)
 
 
 def _unexplained_pixels(views: Sequence[View], nearest: Mapping[str, np.ndarray], hits: Mapping[str, RayHits],
@@ -554,7 +509,7 @@ def _unexplained_pixels(views: Sequence[View], nearest: Mapping[str, np.ndarray]
 
     The pixel is unexplained when it has an estimate (``known``) and its ray misses the proxy,
     or when at least one other view sees its receiver point and none of them sees a colour near
-    its own there: ``nearest`` (:func:`_nearest_colour`) finite and not below ``consistency``. A
+    its own there: ``nearest`` (:func:`~mvintrinsic.photo_occupancy.nearest_colour`) finite and not below ``consistency``. A
     point no other view sees gives no evidence: the pixel keeps the moved shadow.
     """
     return {v.stem: unexplained_pixels(known[v.stem], hits[v.stem].hit.reshape(v.shape), nearest[v.stem], consistency)
@@ -625,6 +580,6 @@ def _view_geometry(decomposition: Decomposition, scene: Scene, config: RelightCo
     gains = {stem: decomposition.lighting.gain(stem) for stem in scene.stems}
     needed = config.consistency is not None or config.fusion is not None or config.lost_occluders is not None
     links = _shared_receivers(scene.views, receivers, hits) if needed else {}
-    nearest = _nearest_colour(scene.views, gains, links) if needed else {}
+    nearest = nearest_colour(scene.views, gains, links) if needed else {}
     timings["consistency"] += time.perf_counter() - start
     return smoothed, receivers, normals, hits, cosine, known, links, nearest

@@ -2,7 +2,7 @@
 
 ::
 
-    python benchmarks/bench_clear_rays.py [--data DIR] --scene NAME [--scene NAME ...] [--out FILE]
+    python benchmarks/bench_clear_rays.py [--data DIR] --scene NAME [--scene NAME ...] [--out FILE [--merge]]
     python benchmarks/bench_clear_rays.py --smoke
 
 For each scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` is the embedded demo,
@@ -23,13 +23,15 @@ For each scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` is the 
 * the labelling's seconds (``shadow_labels``; ``shadow_labels.clear_rays`` the clear-ray test) per
   view.
 
-``--smoke``: the demo only. Nothing is written unless ``--out`` is given.
+``--smoke``: the demo only. Nothing is written unless ``--out`` is given; with ``--merge`` the scenes
+are added to (or replace theirs in) an existing ``--out`` written by this benchmark.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import sys
 import tempfile
 from pathlib import Path
@@ -116,12 +118,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=[])
     parser.add_argument("--smoke", action="store_true", help="the demo only")
     parser.add_argument("--out", type=Path)
+    parser.add_argument("--merge", action="store_true", help="add the scenes to an existing --out")
     args = parser.parse_args(argv)
     names = ["demo"] if args.smoke else args.scene
     if not names:
         parser.error("give --scene or --smoke")
     folders = scene_folders(parser, names, args.data)
-    scenes = {name: run_scene(folder) for name, folder in folders.items()}
+    if args.merge and (args.out is None or not args.out.is_file()):
+        parser.error("--merge needs an existing --out")
+    scenes = json.loads(args.out.read_text())["scenes"] if args.merge else {}
+    scenes.update({name: run_scene(folder) for name, folder in folders.items()})
     if args.out is not None:
         write_json(args.out, {"benchmark": "bench_clear_rays", "version": mvintrinsic.__version__,
                               "config": dataclasses.asdict(Config().multiview.clear_rays), "scenes": scenes})

@@ -557,6 +557,12 @@ def clear_sun_rays(views: Sequence[View], quantities: Mapping[str, PixelQuantiti
     dict of str to (H, W) bool
         In the order of ``views``; all False when fewer views than ``config.occupancy.min_views`` are given
         (no sample could be seen occupied, so no evidence either way).
+
+    Raises
+    ------
+    ValueError, TypeError
+        Naming the argument: a view without quantities, a sun direction that is not a unit vector, a config
+        of another type.
     """
     config = ClearRaysConfig() if config is None else config
     if not isinstance(config, ClearRaysConfig):
@@ -564,6 +570,9 @@ def clear_sun_rays(views: Sequence[View], quantities: Mapping[str, PixelQuantiti
     sun = np.asarray(sun_direction, dtype=np.float64)
     if sun.shape != (3,) or not np.all(np.isfinite(sun)) or abs(np.linalg.norm(sun) - 1.0) > 1e-6:
         raise ValueError(f"sun_direction must be a finite unit (3,) vector, got {sun_direction!r}")
+    missing = [v.stem for v in views if v.stem not in quantities]
+    if missing:
+        raise ValueError(f"quantities: no PixelQuantities for view(s) {missing}")
     out = {v.stem: np.zeros(v.shape, dtype=bool) for v in views}
     if len(views) < config.occupancy.min_views:
         return out

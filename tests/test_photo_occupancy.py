@@ -320,3 +320,12 @@ def test_clear_rays_config_errors_name_the_field(field, value):
         ClearRaysConfig(occupancy=RelightConfig())
     with pytest.raises(ValueError, match="sun_direction"):
         clear_sun_rays([], {}, np.array([0.0, 0.0, 2.0]))
+
+
+def test_clear_sun_rays_names_its_bad_inputs(world):
+    _, scene, decomposition, _ = world
+    quantities = _quantities(scene, decomposition)
+    with pytest.raises(ValueError, match=r"quantities.*v0"):
+        clear_sun_rays(scene.views, {s: q for s, q in quantities.items() if s != "v0"}, CAPTURE)
+    with pytest.raises(TypeError, match="config"):
+        clear_sun_rays(scene.views, quantities, CAPTURE, config=OccupancyConfig())

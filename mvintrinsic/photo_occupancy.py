@@ -39,8 +39,11 @@ labels shadow are lit in the truth (dark windows, a lost crown's own leaves, lit
 their sheets cast false shadows at the new sun and their reflectance, made for a shadow, is
 brighter than the paper's dropping leaves it in the light; a false shadow finds an occluder on
 fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option, off
-by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB, and each new sun
-about 30 ms per view more at 1000x750 (``docs/relight.md``, "Not the default"). Building takes
+by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB (the phantom eave of
+``OccupancyConfig.silhouette``; with ``silhouette=1`` it gains 0.2-0.7 dB there instead), and each new
+sun about 30 ms per view more at 1000x750 (``docs/relight.md``, "Not the default"; at 1000x750 the
+rescued sheets make the caster 7x larger and its occlusion tests 6x slower, profiled on demo_480
+resampled). Building takes
 0.5-1.3 s per 480x360 view with the true layers and 0.5-1.9 s with the pipeline's, against 0.3-0.9
 s without it; 2.8-4.1 s per view at 1000x750 (three scenes resampled; 1.8-2.8 s without it). A
 solid occluder seen from every side
@@ -55,6 +58,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
+from scipy import ndimage
 
 from ._validation import as_array, is_real
 from .camera import Camera
@@ -63,7 +67,7 @@ from .pixels import PixelQuantities
 from .scene import View
 
 __all__ = ["ClearRaysConfig", "OccupancyConfig", "PhotoOccupancy", "blend_rescued", "clear_sun_rays", "nearest_colour",
-           "photo_occupancy", "shared_receivers", "unexplained_pixels"]
+           "photo_occupancy", "shared_receivers", "silhouette_band", "unexplained_pixels"]
 
 
 @dataclass(frozen=True)
@@ -103,6 +107,22 @@ class OccupancyConfig:
         -0.03 to +0.30 (mean +0.06), and row (e) now within 0.01 dB of the option off or above it
         at all 22. Exploratory, on four of them: 0.7 within -0.12..+0.07 dB of 0.5 (means 0.00),
         0.3 0.08 dB below with the true layers, 0 below at all 17 with them. 1: the moved shadow alone.
+    silhouette : int
+        Pixels: an unexplained pixel within this many of the proxy's silhouette in its view (where
+        the camera rays pass from hitting the proxy to missing it, :func:`silhouette_band`) is no
+        evidence; >= 0. Such a pixel may mix the proxy's surface with the sky beyond it (a roof's
+        edge): no other view sees its colour at its receiver point, so it looks unexplained in
+        every view, and with cameras at one height the bands of all views line up: the samples
+        under the roof's edge, metres in front of the facade, are seen occupied by all of them (a
+        phantom eave). It may as well be the edge of an eave or a crown the proxy lost. 0 (every
+        unexplained pixel counts) against 1 (``benchmarks/bench_occupancy_silhouette.py``, seven
+        scenes, row (e) - (a) with ``lost_occluders``): on the 240x180 demo, whose band is twice as
+        wide in metres as at 480x360, the upper windows' false shadows find the phantom eave 2-4 m
+        up their sun rays: -0.94 / -0.08 dB at az+15 / el+10 with 0, +1.12 / +1.04 with 1 (the
+        default relighter +0.44 / +0.82); on the five 480x360 scenes and dev_courtyard (320x240) 1
+        is -0.37 to +0.07 dB per scene (street_s0 the lowest: its rescued pixels fall from 6.3% to
+        1.3%, the band held the lost eaves' own evidence), mean -0.03 at +-15 degrees. 0 by default;
+        1 for views of 240x180 or so.
     min_hits : float
         With these distances the relighter keeps a shadow cluster only when at least this share
         of its sun rays hit the proxy or find an occluder here (instead of
@@ -123,11 +143,15 @@ class OccupancyConfig:
     consistency: float = 0.3
     belief: float = 0.5
     min_hits: float = 0.6
+    silhouette: int = 0
 
     def __post_init__(self) -> None:
         if isinstance(self.min_views, bool) or not isinstance(self.min_views, (int, np.integer)) or self.min_views < 1:
             raise ValueError(f"min_views must be an integer >= 1, got {self.min_views!r}")
         object.__setattr__(self, "min_views", int(self.min_views))
+        if isinstance(self.silhouette, bool) or not isinstance(self.silhouette, (int, np.integer)) or self.silhouette < 0:
+            raise ValueError(f"silhouette must be an integer >= 0, got {self.silhouette!r}")
+        object.__setattr__(self, "silhouette", int(self.silhouette))
         for name, inside, interval in (("share", lambda v: 0.0 < v <= 1.0, "(0, 1]"),
                                        ("depth_margin", lambda v: 0.0 <= v < 1.0, "[0, 1)"),
                                        ("min_hits", lambda v: 0.0 <= v <= 1.0, "[0, 1]"),
@@ -173,6 +197,8 @@ class ClearRaysConfig:
         stay those of a 480x360 view (the free paths are metres long, not pixels).
     occupancy : OccupancyConfig
         The occupancy evidence (:func:`photo_occupancy`); its rule for a sample seen occupied is the relighter's.
+        ``OccupancyConfig(silhouette=0)``: the labelling measured in ``benchmarks/results/clear_rays.json``
+        (the silhouette band came after it and is measured for the relighter only).
     """
 
     prior: float = 0.3
@@ -180,7 +206,7 @@ class ClearRaysConfig:
     share: float = 0.5
     step: float = 0.2
     stride: int = 2
-    occupancy: OccupancyConfig = OccupancyConfig()
+    occupancy: OccupancyConfig = OccupancyConfig(silhouette=0)
 
     def __post_init__(self) -> None:
         if not is_real(self.prior) or not 0.0 <= self.prior < np.inf:
@@ -485,6 +511,24 @@ def unexplained_pixels(known: np.ndarray, hit: np.ndarray, nearest_colour: np.nd
     return known & (~hit | inconsistent)
 
 
+def silhouette_band(hit: np.ndarray, width: int) -> np.ndarray:
+    """The pixels within ``width`` pixels (chessboard distance) of both a pixel whose camera ray hits the
+    proxy and one whose ray misses it, (H, W) bool: both sides of the proxy's silhouette in the view.
+
+    Parameters
+    ----------
+    hit : (H, W) bool array_like
+        Whether each pixel's camera ray hits the proxy.
+    width : int
+        >= 0; 0 gives no pixel.
+    """
+    hit = np.asarray(hit, dtype=bool)
+    if width <= 0:
+        return np.zeros(hit.shape, dtype=bool)
+    structure = np.ones((2 * width + 1, 2 * width + 1), dtype=bool)
+    return ndimage.binary_dilation(hit, structure) & ndimage.binary_dilation(~hit, structure)
+
+
 def photo_occupancy(views: Sequence[View], depth: Mapping[str, np.ndarray], known: Mapping[str, np.ndarray],
                     nearest_colour: Mapping[str, np.ndarray], *, config: OccupancyConfig | None = None
                     ) -> PhotoOccupancy:
@@ -528,7 +572,10 @@ def photo_occupancy(views: Sequence[View], depth: Mapping[str, np.ndarray], know
         k = as_array(known[stem], f"known[{stem!r}]", shape=shape, dtype=bool)
         c = as_array(nearest_colour[stem], f"nearest_colour[{stem!r}]", shape=shape, dtype=np.float64, finite=False)
         depths.append(np.where(hit, d, np.inf))
-        occupied.append(unexplained_pixels(k, hit, c, config.consistency))
+        unexplained = unexplained_pixels(k, hit, c, config.consistency)
+        if config.silhouette:  # mixed pixels at the proxy's silhouette are no evidence (OccupancyConfig.silhouette)
+            unexplained &= ~silhouette_band(hit, config.silhouette)
+        occupied.append(unexplained)
         free.append((view.mask & ~k & ~hit) | (hit & (c < config.consistency)))  # sky; a surface another view confirms
     return PhotoOccupancy(tuple(v.camera for v in views), tuple(depths), tuple(occupied), tuple(free), config)
 

@@ -22,6 +22,7 @@ from mvintrinsic.photo_occupancy import (
     blend_rescued,
     clear_sun_rays,
     photo_occupancy,
+    silhouette_band,
 )
 from mvintrinsic.pixels import PixelQuantities
 from mvintrinsic.raytrace import Tracer
@@ -214,11 +215,43 @@ def test_the_rescued_pixels_mix_the_two_hypotheses(world):
 @pytest.mark.parametrize(("field", "value"), [("min_views", 0), ("belief", -0.1), ("belief", 1.5), ("min_views", 2.5), ("share", 0.0), ("share", 1.5),
                                               ("min_hits", -0.1), ("min_hits", 1.5),
                                               ("step", 0.0), ("start", -1.0), ("max_distance", np.inf),
-                                              ("depth_margin", 1.0), ("consistency", 0.0)])
+                                              ("depth_margin", 1.0), ("consistency", 0.0),
+                                              ("silhouette", -1), ("silhouette", 1.5), ("silhouette", True)])
 def test_config_errors_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         OccupancyConfig(**{field: value})
 
+
+
+def test_the_silhouette_band_straddles_the_proxy_edge():
+    hit = np.zeros((6, 10), bool)
+    hit[:, :5] = True
+    assert not silhouette_band(hit, 0).any()
+    np.testing.assert_array_equal(np.flatnonzero(silhouette_band(hit, 1)[0]), [4, 5])
+    np.testing.assert_array_equal(np.flatnonzero(silhouette_band(hit, 2)[3]), [3, 4, 5, 6])
+    assert not silhouette_band(np.ones((4, 4), bool), 1).any()  # no edge, no band
+    assert not silhouette_band(np.zeros((4, 4), bool), 1).any()
+
+
+def test_mixed_pixels_at_the_proxy_silhouette_are_no_evidence(world):
+    """Pixels beside the ground's edge that look unexplained (a mixed pixel of the proxy and what is
+    beyond it) are occupancy evidence with ``silhouette=0`` (the default) only; the pole is found either way."""
+    true, scene, _, truth = world
+    proxy = Tracer(scene.proxy)
+    depth = {v.stem: proxy.intersect(v.camera.center, v.camera.pixel_rays()).t.reshape(H, W) for v in scene.views}
+    hit = {s: np.isfinite(d) for s, d in depth.items()}
+    band = {s: silhouette_band(h, 1) for s, h in hit.items()}
+    assert sum(int(b.sum()) for b in band.values()) > 100  # the views see the ground's edge
+    known = {s: hit[s] | band[s] for s in hit}  # the miss side of the band given an estimate, as a mixed pixel is
+    colour = {s: np.where(truth[s][2] & ~band[s], 0.0, 1.0) for s in hit}  # pole and band unexplained
+    with_band = photo_occupancy(scene.views, depth, known, colour, config=OccupancyConfig(silhouette=1))
+    without = photo_occupancy(scene.views, depth, known, colour)
+    for index, stem in enumerate(scene.stems):
+        assert (without.occupied[index] & band[stem]).sum() == (known[stem] & band[stem]).sum()
+        np.testing.assert_array_equal(with_band.occupied[index], without.occupied[index] & ~band[stem])
+    points, normals, ground = truth["v0"]
+    origins = points[exact_shadow(true, points, normals, ground, CAPTURE)]
+    assert np.isfinite(with_band.first_occupied(origins, CAPTURE)).mean() > 0.4
 
 def test_bad_inputs_are_named(world):
     _, scene, _, _ = world

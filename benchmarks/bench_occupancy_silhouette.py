@@ -1,0 +1,88 @@
+"""The relighter's ``lost_occluders`` with and without the proxy-silhouette band (``OccupancyConfig.silhouette``).
+
+::
+
+    python benchmarks/bench_occupancy_silhouette.py [--data DIR] --scene NAME [--scene NAME ...] [--out FILE]
+    python benchmarks/bench_occupancy_silhouette.py --smoke
+
+For each scene (``DIR/NAME`` rendered by ``mvintrinsic synth`` with relit renders under
+``gt/relit/<tag>``; ``demo`` is the embedded demo, ``dev_courtyard`` the shared dataset), with its
+MVS-like proxy, the whole pipeline (:func:`mvintrinsic.decompose`, default configuration) once, then
+the relit PSNR above the input's (row (e) minus row (a) of ``benchmarks/bench_relight.py``) per tag
+with three relighters:
+
+* ``default``: :class:`~mvintrinsic.relight.RelightConfig` as it is (``lost_occluders=None``);
+* ``silhouette_0``: ``lost_occluders=OccupancyConfig()`` (``silhouette=0``, the default: every
+  unexplained pixel is occupancy evidence);
+* ``silhouette_1``: ``lost_occluders=OccupancyConfig(silhouette=1)`` (a band of 1 pixel).
+
+and the rescued pixels (:attr:`~mvintrinsic.relight.Relighter.rescued`) per row as a share of the
+pixels. ``--smoke``: the demo only. Nothing is written unless ``--out`` is given.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import mvintrinsic
+from mvintrinsic import decompose
+from mvintrinsic.evaluation import read_ground_truth
+from mvintrinsic.io import load_scene, write_json
+from mvintrinsic.photo_occupancy import OccupancyConfig
+from mvintrinsic.raytrace import Tracer
+from mvintrinsic.relight import RelightConfig, Relighter
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_relight import mean_psnr, relit_tags  # noqa: E402
+from bench_step4 import scene_folders  # noqa: E402
+
+ROWS = {"default": RelightConfig(),
+        "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig()),
+        "silhouette_1": RelightConfig(lost_occluders=OccupancyConfig(silhouette=1))}
+
+
+def run_scene(folder: Path) -> dict:
+    """The three rows of one scene (module docstring)."""
+    scene = load_scene(folder)
+    tags = relit_tags(folder, scene.stems)
+    if not tags:
+        raise SystemExit(f"{folder}: no relit renders under gt/relit")
+    tracer = Tracer(scene.proxy)
+    truth = read_ground_truth(folder, views=list(scene.stems))
+    sky = {s: truth[s].sky_mask for s in scene.stems}
+    inputs = {v.stem: v.image for v in scene.views}
+    base = {tag: mean_psnr(inputs, images, sky)["mean"] for tag, (_, images, _) in tags.items()}
+    result = decompose(scene, tracer=tracer)
+    pixels = sum(v.mask.size for v in scene.views)
+    out = {"size": list(scene.views[0].shape[::-1]), "views": len(scene.views)}
+    for row, config in ROWS.items():
+        relighter = Relighter(result, scene, config=config, tracer=tracer)
+        out[row] = {"relit_minus_input": {tag: mean_psnr(relighter.render(direction), images, sky)["mean"] - base[tag]
+                                          for tag, (direction, images, _) in tags.items()},
+                    "rescued_share": sum(int(m.sum()) for m in relighter.rescued.values()) / pixels}
+        print(f"{folder.name} {row}: " + " ".join(f"{tag} {v:+.2f}" for tag, v in out[row]["relit_minus_input"].items())
+              + f" rescued {out[row]['rescued_share']:.4f}", flush=True)
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "data")
+    parser.add_argument("--scene", action="append", default=[])
+    parser.add_argument("--smoke", action="store_true", help="the demo only")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+    names = ["demo"] if args.smoke else args.scene
+    if not names:
+        parser.error("give --scene or --smoke")
+    scenes = {name: run_scene(folder) for name, folder in scene_folders(parser, names, args.data).items()}
+    if args.out is not None:
+        write_json(args.out, {"benchmark": "bench_occupancy_silhouette", "version": mvintrinsic.__version__,
+                              "psnr": "relit PSNR minus the input's, dB (docs/metrics.md)", "scenes": scenes})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -29,7 +29,6 @@ are added to (or replace theirs in) an existing ``--out`` written by this benchm
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import sys
@@ -49,7 +48,7 @@ from mvintrinsic.results import SHADOW_LABELS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_relight import mean_psnr, relit_tags  # noqa: E402
-from bench_step4 import scene_folders  # noqa: E402
+from bench_step4 import chosen_scene_folders, scene_study_parser  # noqa: E402
 
 VARIANTS = ("off", "on")
 
@@ -113,17 +112,10 @@ def run_scene(folder: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "data")
-    parser.add_argument("--scene", action="append", default=[])
-    parser.add_argument("--smoke", action="store_true", help="the demo only")
-    parser.add_argument("--out", type=Path)
+    parser = scene_study_parser(__doc__.splitlines()[0])
     parser.add_argument("--merge", action="store_true", help="add the scenes to an existing --out")
     args = parser.parse_args(argv)
-    names = ["demo"] if args.smoke else args.scene
-    if not names:
-        parser.error("give --scene or --smoke")
-    folders = scene_folders(parser, names, args.data)
+    folders = chosen_scene_folders(parser, args)
     if args.merge and (args.out is None or not args.out.is_file()):
         parser.error("--merge needs an existing --out")
     scenes = json.loads(args.out.read_text())["scenes"] if args.merge else {}

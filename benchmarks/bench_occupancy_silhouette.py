@@ -22,7 +22,6 @@ pixels. ``--smoke``: the demo only. Nothing is written unless ``--out`` is given
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 
@@ -36,7 +35,7 @@ from mvintrinsic.relight import RelightConfig, Relighter
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_relight import mean_psnr, relit_tags  # noqa: E402
-from bench_step4 import scene_folders  # noqa: E402
+from bench_step4 import chosen_scene_folders, scene_study_parser  # noqa: E402
 
 ROWS = {"default": RelightConfig(),
         "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig()),
@@ -68,16 +67,9 @@ def run_scene(folder: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[2] / "data")
-    parser.add_argument("--scene", action="append", default=[])
-    parser.add_argument("--smoke", action="store_true", help="the demo only")
-    parser.add_argument("--out", type=Path)
+    parser = scene_study_parser(__doc__.splitlines()[0])
     args = parser.parse_args(argv)
-    names = ["demo"] if args.smoke else args.scene
-    if not names:
-        parser.error("give --scene or --smoke")
-    scenes = {name: run_scene(folder) for name, folder in scene_folders(parser, names, args.data).items()}
+    scenes = {name: run_scene(folder) for name, folder in chosen_scene_folders(parser, args).items()}
     if args.out is not None:
         write_json(args.out, {"benchmark": "bench_occupancy_silhouette", "version": mvintrinsic.__version__,
                               "psnr": "relit PSNR minus the input's, dB (docs/metrics.md)", "scenes": scenes})

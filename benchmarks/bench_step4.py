@@ -202,6 +202,25 @@ def scene_folders(parser: argparse.ArgumentParser, names: list[str], data: Path)
     return folders
 
 
+
+def scene_study_parser(description: str) -> argparse.ArgumentParser:
+    """The parser of a per-scene study: ``--data`` (default: ``data`` beside the repository), ``--scene``
+    (repeatable), ``--smoke`` (the demo only) and ``--out``; :func:`chosen_scene_folders` reads it."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")
+    parser.add_argument("--scene", action="append", default=[], help="DATA/NAME, 'demo' or 'dev_courtyard' (repeatable)")
+    parser.add_argument("--smoke", action="store_true", help="the demo only")
+    parser.add_argument("--out", type=Path, help="JSON report (nothing is written without it)")
+    return parser
+
+
+def chosen_scene_folders(parser: argparse.ArgumentParser, args: argparse.Namespace) -> dict[str, Path]:
+    """The folders of ``--scene`` (or of the demo with ``--smoke``), each checked (:func:`scene_folders`)."""
+    names = ["demo"] if args.smoke else args.scene
+    if not names:
+        parser.error("give --scene or --smoke")
+    return scene_folders(parser, names, args.data)
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=ROOT / "data", help="folder of the rendered scenes")

@@ -231,6 +231,11 @@ def test_the_silhouette_band_straddles_the_proxy_edge():
     np.testing.assert_array_equal(np.flatnonzero(silhouette_band(hit, 2)[3]), [3, 4, 5, 6])
     assert not silhouette_band(np.ones((4, 4), bool), 1).any()  # no edge, no band
     assert not silhouette_band(np.zeros((4, 4), bool), 1).any()
+    for width in (-1, 1.5, True):
+        with pytest.raises(ValueError, match="width"):
+            silhouette_band(hit, width)
+    with pytest.raises(ValueError, match="hit"):
+        silhouette_band(np.ones(5, bool), 1)
 
 
 def test_mixed_pixels_at_the_proxy_silhouette_are_no_evidence(world):

@@ -202,7 +202,6 @@ def scene_folders(parser: argparse.ArgumentParser, names: list[str], data: Path)
     return folders
 
 
-
 def scene_study_parser(description: str) -> argparse.ArgumentParser:
     """The parser of a per-scene study: ``--data`` (default: ``data`` beside the repository), ``--scene``
     (repeatable), ``--smoke`` (the demo only) and ``--out``; :func:`chosen_scene_folders` reads it."""
@@ -220,6 +219,7 @@ def chosen_scene_folders(parser: argparse.ArgumentParser, args: argparse.Namespa
     if not names:
         parser.error("give --scene or --smoke")
     return scene_folders(parser, names, args.data)
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

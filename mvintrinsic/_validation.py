@@ -43,6 +43,19 @@ def is_real(value: object) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
 
 
+def as_count(value: object, name: str, *, least: int) -> int:
+    """``value`` as an ``int`` if it is a Python or NumPy integer (bools excluded) of at least ``least``.
+
+    Raises
+    ------
+    ValueError
+        Otherwise, naming ``name``: "``name`` must be an integer >= ``least``, got ``value``".
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
+        raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
+    return int(value)
+
+
 def as_array(
     value: object,
     name: str,

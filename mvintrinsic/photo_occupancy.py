@@ -60,7 +60,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import ndimage
 
-from ._validation import as_array, is_real
+from ._validation import as_array, as_count, is_real
 from .camera import Camera
 from .correspondence import seen_pixels, surface_points
 from .pixels import PixelQuantities
@@ -146,12 +146,8 @@ class OccupancyConfig:
     silhouette: int = 0
 
     def __post_init__(self) -> None:
-        if isinstance(self.min_views, bool) or not isinstance(self.min_views, (int, np.integer)) or self.min_views < 1:
-            raise ValueError(f"min_views must be an integer >= 1, got {self.min_views!r}")
-        object.__setattr__(self, "min_views", int(self.min_views))
-        if isinstance(self.silhouette, bool) or not isinstance(self.silhouette, (int, np.integer)) or self.silhouette < 0:
-            raise ValueError(f"silhouette must be an integer >= 0, got {self.silhouette!r}")
-        object.__setattr__(self, "silhouette", int(self.silhouette))
+        object.__setattr__(self, "min_views", as_count(self.min_views, "min_views", least=1))
+        object.__setattr__(self, "silhouette", as_count(self.silhouette, "silhouette", least=0))
         for name, inside, interval in (("share", lambda v: 0.0 < v <= 1.0, "(0, 1]"),
                                        ("depth_margin", lambda v: 0.0 <= v < 1.0, "[0, 1)"),
                                        ("min_hits", lambda v: 0.0 <= v <= 1.0, "[0, 1]"),
@@ -197,7 +193,7 @@ class ClearRaysConfig:
         stay those of a 480x360 view (the free paths are metres long, not pixels).
     occupancy : OccupancyConfig
         The occupancy evidence (:func:`photo_occupancy`); its rule for a sample seen occupied is the relighter's.
-        ``OccupancyConfig(silhouette=0)``: the labelling measured in ``benchmarks/results/clear_rays.json``
+        ``OccupancyConfig()`` (``silhouette`` 0): the labelling measured in ``benchmarks/results/clear_rays.json``
         (with ``silhouette=1``, exploratory: the demo's BER 0.1638 -> 0.1625, courtyard_s1's unchanged to 0.0001).
     """
 
@@ -206,7 +202,7 @@ class ClearRaysConfig:
     share: float = 0.5
     step: float = 0.2
     stride: int = 2
-    occupancy: OccupancyConfig = OccupancyConfig(silhouette=0)
+    occupancy: OccupancyConfig = OccupancyConfig()
 
     def __post_init__(self) -> None:
         if not is_real(self.prior) or not 0.0 <= self.prior < np.inf:
@@ -217,15 +213,13 @@ class ClearRaysConfig:
             value = getattr(self, name)
             if not is_real(value) or not 0.0 < value < np.inf:
                 raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-        if isinstance(self.stride, bool) or not isinstance(self.stride, (int, np.integer)) or self.stride < 1:
-            raise ValueError(f"stride must be an integer >= 1, got {self.stride!r}")
+        object.__setattr__(self, "stride", as_count(self.stride, "stride", least=1))
         if not isinstance(self.occupancy, OccupancyConfig):
             raise TypeError(f"occupancy must be an OccupancyConfig, got {type(self.occupancy).__name__}")
         if self.distance <= self.occupancy.start:
             raise ValueError(f"distance ({self.distance}) must be above occupancy.start ({self.occupancy.start})")
         for name in ("prior", "distance", "share", "step"):
             object.__setattr__(self, name, float(getattr(self, name)))
-        object.__setattr__(self, "stride", int(self.stride))
 
 
 @dataclass(frozen=True, eq=False)
@@ -527,8 +521,7 @@ def silhouette_band(hit: np.ndarray, width: int) -> np.ndarray:
     ValueError
         If ``width`` is not an integer >= 0 or ``hit`` is not 2-D (the message names it).
     """
-    if isinstance(width, bool) or not isinstance(width, (int, np.integer)) or width < 0:
-        raise ValueError(f"width must be an integer >= 0, got {width!r}")
+    width = as_count(width, "width", least=0)
     hit = as_array(hit, "hit", shape=(None, None), dtype=bool)
     if width == 0:
         return np.zeros(hit.shape, dtype=bool)

@@ -222,7 +222,6 @@ def test_config_errors_name_the_field(field, value):
         OccupancyConfig(**{field: value})
 
 
-
 def test_the_silhouette_band_straddles_the_proxy_edge():
     hit = np.zeros((6, 10), bool)
     hit[:, :5] = True
@@ -257,6 +256,7 @@ def test_mixed_pixels_at_the_proxy_silhouette_are_no_evidence(world):
     points, normals, ground = truth["v0"]
     origins = points[exact_shadow(true, points, normals, ground, CAPTURE)]
     assert np.isfinite(with_band.first_occupied(origins, CAPTURE)).mean() > 0.4
+
 
 def test_bad_inputs_are_named(world):
     _, scene, _, _ = world

@@ -672,5 +672,10 @@ def blend_rescued(moved: Mapping[str, np.ndarray], paper: Mapping[str, np.ndarra
         if stem in rescued:
             mask = as_array(rescued[stem], f"rescued[{stem!r}]", shape=image.shape[:2], dtype=bool)
             other = as_array(paper[stem], f"paper[{stem!r}]", shape=(int(mask.sum()), 3), dtype=np.float32)
-            image[mask] = np.float32(belief) * image[mask] + np.float32(1.0 - belief) * other
+            _blend_into(image, mask, other, belief)
     return out
+
+
+def _blend_into(image: np.ndarray, mask: np.ndarray, paper: np.ndarray, belief: float) -> None:
+    """:func:`blend_rescued` of one view in place: (H, W, 3) float32 ``image``, (H, W) bool ``mask``, (N, 3) ``paper``."""
+    image[mask] = np.float32(belief) * image[mask] + np.float32(1.0 - belief) * paper

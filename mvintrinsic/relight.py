@@ -127,7 +127,8 @@ References
 from __future__ import annotations
 
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from types import MappingProxyType
 from typing import Any
@@ -135,7 +136,7 @@ from typing import Any
 import numpy as np
 
 from ._cluster import _as_client, _Rebuilt, _ViewTasks
-from ._validation import as_array, config_or_default, describe
+from ._validation import as_array, as_count, config_or_default, describe
 from .caster import (
     CASTER_MODES,
     CASTER_PIXEL_MODES,
@@ -158,7 +159,7 @@ from .caster import (
     remove_contradicted,
     shadow_pixels,
 )
-from .photo_occupancy import blend_rescued, photo_occupancy
+from .photo_occupancy import _blend_into, blend_rescued, photo_occupancy
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer
 from .raytrace import sun_visibility as proxy_vertex_visibility
@@ -167,11 +168,15 @@ from .relit_shading import (
     RGB_WAVELENGTHS_UM,
     SKY_GRID_HEIGHT,
     SKY_RATIO_FLOOR,
+    _build_task,
     _grid_ratio,
+    _image_task,
     _into_light,
+    _irradiance_task,
+    _new_sun_terms,
+    _NewSun,
     _PaperPixels,
-    _relit_sun_shading,
-    _sky_factor,
+    _render_view,
     _sky_irradiance_grid,
     _SkyPixels,
     _SphereLookup,
@@ -221,148 +226,6 @@ def _check_decomposition(decomposition: object, scene: object) -> tuple[Decompos
     return decomposition, scene
 
 
-class _NewSun:
-    """One view's sun-independent inputs of a new sun, and the per-view steps of one (:class:`Relighter`).
-
-    Built once per view; :meth:`Relighter.render` runs these steps here, or ships this object once
-    to a dask worker and runs them there (:func:`_render_view`): the same code either way, so the
-    images are identical. It holds no Embree structure (those cannot be pickled): the caster's and
-    the proxy's are passed in.
-
-    Parameters
-    ----------
-    receivers : (H*W, 3) float64
-        Receiver points, world frame, metres (:func:`receiver_points`).
-    shape : (int, int)
-        ``(H, W)``.
-    blocked : (P + 1,) bool
-        :meth:`ShadowCaster.completion_blocked` of the view's caster.
-    min_distance : float
-        Proxy hits nearer than this (metres) complete no shadow.
-    config : RelightConfig
-    batch : int
-        Rays per Embree call.
-    normals : (H, W, 3) float32
-        Unit receiver normals, world frame.
-    base, floor : (H, W, 3) float32
-        ``S_sun' = max(base + L_sun max(0, n.d'), floor)`` (:meth:`Relighter._prepare_new_sun`).
-    fill : (H, W, 3) float32
-        The input image where the layers hold no estimate, 0 elsewhere.
-    reflectance, fill_reflectance : (H, W, 3) float32
-        ``R`` after the in-shadow fix; the same with 0 where the layers hold no estimate.
-    sky_shading, indirect_shading : (H, W, 3) float32
-        The layers' ``S_sky`` and ``S_ind``.
-    radiance : (3,) float32
-        ``L_sun`` in the view's units.
-    known : (H, W) bool
-        Pixels where the layers hold an estimate.
-    sky_lookup : _SphereLookup or None
-        ``sky="model"``: the sky irradiance table at each pixel's normal.
-    unexplained : (H, W) bool or None
-        Pixels that keep ``capture`` at every sun (:attr:`Relighter.unexplained`); None: none.
-    capture : (H, W) float32 or None
-        The capture ``v_sun`` after the in-shadow fix (:attr:`Relighter.visibility`).
-    static : (H, W) bool or None
-        Pixels whose ``v'`` is ``capture`` times the caster's (``dropped="static"``); None: none.
-    """
-
-    def __init__(self, *, receivers: np.ndarray, shape: tuple[int, int], blocked: np.ndarray, min_distance: float,
-                 config: RelightConfig, batch: int, normals: np.ndarray, base: np.ndarray, floor: np.ndarray,
-                 fill: np.ndarray, reflectance: np.ndarray, fill_reflectance: np.ndarray, sky_shading: np.ndarray,
-                 indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
-                 sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
-                 capture: np.ndarray | None = None, static: np.ndarray | None = None,
-                 sky_pixels: _SkyPixels | None = None) -> None:
-        self.unexplained, self.capture, self.static, self.sky_pixels = unexplained, capture, static, sky_pixels
-        self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
-        self.config, self.batch = config, batch
-        self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
-        self.reflectance, self.fill_reflectance = reflectance, fill_reflectance
-        self.sky_shading, self.indirect_shading = sky_shading, indirect_shading
-        self.radiance, self.known, self.sky_lookup = radiance, known, sky_lookup
-
-    def visibility(self, direction: np.ndarray, shadow_caster: ShadowCaster, tracer: Tracer) -> np.ndarray:
-        """``v'`` (H, W) float32 at the unit sun ``direction`` (:meth:`Relighter.visibility_at`)."""
-        visibility = shadow_caster._visibility(self.receivers, self.shape, direction, proxy_tracer=tracer,
-                                               blocked=self.blocked, min_distance=self.min_distance, facing=None,
-                                               config=self.config, batch=self.batch)
-        if self.static is not None:  # the shadow of a dropped cluster stays (RelightConfig.dropped)
-            visibility[self.static] *= self.capture[self.static]
-        if self.unexplained is not None:
-            np.copyto(visibility, self.capture, where=self.unexplained)
-        return visibility
-
-    def cosine(self, direction: np.ndarray) -> np.ndarray:
-        """``max(0, n . d')`` (H, W) float32 for the float32 unit sun ``direction``."""
-        cosine = self.normals @ direction
-        return np.maximum(cosine, np.float32(0.0), out=cosine)
-
-    def irradiance(self, cosine: np.ndarray, visibility: np.ndarray) -> float:
-        """``sum max(0, n . d') v'`` over the pixels with an estimate (``sky="model"``'s ``S_ind``)."""
-        return float((cosine.astype(np.float64) * visibility)[self.known].sum())
-
-    def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
-        """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
-        return _sky_factor(environment, self.sky_lookup)
-
-    def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
-        """``S_sun'`` (H, W, 3) float32 from ``max(0, n . d')``."""
-        return _relit_sun_shading(cosine, self.radiance, self.base, self.floor)
-
-    def image(self, visibility: np.ndarray, sun_shading: np.ndarray, sky: np.ndarray, indirect: float,
-              fill: str, direction: np.ndarray | None = None) -> np.ndarray:
-        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32, the sky pixels of the fill recoloured
-        for the sun ``direction`` (:attr:`RelightConfig.sky_pixels`); ``sun_shading`` is overwritten."""
-        image = sun_shading
-        image *= visibility[..., None]
-        image += self.sky_shading * sky
-        image += self.indirect_shading * np.float32(indirect)
-        if fill == "input":  # the reflectance of the pixels without an estimate is 0 there
-            image *= self.fill_reflectance
-            image += self.fill
-            if self.sky_pixels is not None and direction is not None:
-                self.sky_pixels.recolour(image, direction)
-        else:
-            image *= self.reflectance
-        return image
-
-
-def _build_task(caster: _Rebuilt, tracer: _Rebuilt) -> None:
-    """A task: build the caster's and the proxy's Embree structures on this worker (once each)."""
-    caster.get()
-    tracer.get()
-
-
-def _new_sun_terms(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
-                   shadow_sun: np.ndarray, visibility: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """A task: one view's ``(v', max(0, n . d'))`` at a new sun (``visibility`` given: that ``v'``)."""
-    if visibility is None:
-        visibility = new_sun.visibility(shadow_sun, caster.get(), tracer.get())
-    return visibility, new_sun.cosine(direction.astype(np.float32))
-
-
-def _irradiance_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray]) -> float:
-    """A task: :meth:`_NewSun.irradiance` of one view's :func:`_new_sun_terms`."""
-    visibility, cosine = terms
-    return new_sun.irradiance(cosine, visibility)
-
-
-def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple[str, np.ndarray],
-                indirect_factor: float, fill: str, direction: np.ndarray) -> np.ndarray:
-    """A task: one view's relit image from its :func:`_new_sun_terms`."""
-    visibility, cosine = terms
-    return new_sun.image(visibility, new_sun.sun_shading(cosine), new_sun.sky_factor(environment),
-                         indirect_factor, fill, direction)
-
-
-def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
-                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple[str, np.ndarray],
-                 indirect_factor: float, fill: str) -> np.ndarray:
-    """A task: one view's relit image at a new sun (``sky="paper"``: no cross-view term)."""
-    terms = _new_sun_terms(new_sun, caster, tracer, direction, shadow_sun, visibility)
-    return _image_task(new_sun, terms, environment=environment, indirect_factor=indirect_factor, fill=fill,
-                       direction=direction)
-
 
 class Relighter:
     """Relight every view of a decomposition under new suns (paper Sec. 8).
@@ -391,6 +254,12 @@ class Relighter:
         A tracer already built over ``scene.proxy``.
     batch : int, optional
         Rays per Embree call.
+    threads : int, optional
+        Views :meth:`render` works on at once in this process (default 2; 1: one after the other).
+        Embree already casts each view's rays on every core; the rest of a new sun (blur, fusion,
+        shading, composition) is NumPy and SciPy on one core per view. Two threads (and the OpenCV
+        blur) took a new sun at 1000x750 from 0.088-0.106 to 0.052-0.075 s per view on two cores
+        (``docs/relight.md``, "Speed"); the images are identical to one thread's.
     client : distributed.Client, optional
         A dask.distributed client: :meth:`render` then runs one task per view on its cluster
         (``docs/distributed.md``). Building stays here; each view's inputs of a new sun (about
@@ -454,10 +323,12 @@ class Relighter:
     """
 
     def __init__(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None = None,
-                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None) -> None:
+                 tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None,
+                 threads: int = 2) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
         config = config_or_default(config, RelightConfig)
         client = _as_client(client)
+        self._threads = as_count(threads, "threads", least=1)
         if tracer is None:
             tracer = Tracer(scene.proxy)
         tracer = _check_tracer(tracer)
@@ -615,8 +486,15 @@ class Relighter:
             ``v'`` in [0, 1] per view, in scene order.
         """
         direction = as_sun_direction(sun, up=self.up)
-        out = {s: self._new_sun[s].visibility(direction, self.shadow_casters[s], self.tracer) for s in self.stems}
-        return out if self._fusion is None else _fuse(self._fusion, out)
+        out = self._per_view(lambda s: self._new_sun[s].visibility(direction, self.shadow_casters[s], self.tracer))
+        return out if self._fusion is None else _fuse(self._fusion, out, run=self._per_view)
+
+    def _per_view(self, task: Callable[[str], Any]) -> dict[str, Any]:
+        """``{stem: task(stem)}`` in scene order, on the constructor's ``threads``."""
+        if self._threads == 1 or len(self.stems) == 1:
+            return {s: task(s) for s in self.stems}
+        with ThreadPoolExecutor(max_workers=min(self._threads, len(self.stems))) as pool:
+            return dict(zip(self.stems, pool.map(task, self.stems), strict=True))
 
     def proxy_visibility(self, sun: object) -> dict[str, np.ndarray]:
         """The proxy's own shadow at a new sun, as Step 1 computes it (paper Sec. 4; Fig. 11, right).
@@ -779,14 +657,14 @@ class Relighter:
         direction = as_sun_direction(sun, up=self.up)
         new_vis = self.visibility_at(direction) if visibility is None else self._check_visibility(visibility)
         d32 = direction.astype(np.float32)
-        new_cosine = {s: self._new_sun[s].cosine(d32) for s in self.stems}
+        new_cosine = self._per_view(lambda s: self._new_sun[s].cosine(d32))
         environment, indirect_factor = self._environment(direction)
         if indirect_factor is None:
-            indirect_factor = self._indirect_factor(
-                sum(self._new_sun[s].irradiance(new_cosine[s], new_vis[s]) for s in self.stems))
-        return {s: (new_vis[s], self._new_sun[s].sun_shading(new_cosine[s]), self._new_sun[s].sky_factor(environment),
-                    indirect_factor)
-                for s in self.stems}, environment, indirect_factor
+            irradiance = self._per_view(lambda s: self._new_sun[s].irradiance(new_cosine[s], new_vis[s]))
+            indirect_factor = self._indirect_factor(sum(irradiance[s] for s in self.stems))
+        return self._per_view(lambda s: (new_vis[s], self._new_sun[s].sun_shading(new_cosine[s]),
+                                         self._new_sun[s].sky_factor(environment), indirect_factor)
+                              ), environment, indirect_factor
 
     def render(self, sun: object, *, visibility: Mapping[str, np.ndarray] | None = None,
                fill: str = "input") -> dict[str, np.ndarray]:
@@ -816,17 +694,25 @@ class Relighter:
         if fill not in ("input", "zero"):
             raise ValueError(f"fill must be 'input' or 'zero', got {fill!r}")
         direction = as_sun_direction(sun, up=self.up)
+        d32 = direction.astype(np.float32)
+        blend = bool(self._paper) and visibility is None  # the rescued pixels mix the paper's image
         if self._tasks is not None:
             images, environment, indirect_factor = self._render_on_cluster(direction, visibility, fill)
-        else:
-            relit, environment, indirect_factor = self._relit(direction, visibility)
-            images = {s: self._new_sun[s].image(v_new, s_sun, sky, indirect, fill, direction)
-                      for s, (v_new, s_sun, sky, indirect) in relit.items()}
-        if not self._paper or visibility is not None:
-            return images
-        d32 = direction.astype(np.float32)
-        return blend_rescued(images, {s: paper(d32, environment, indirect_factor) for s, paper in self._paper.items()},
-                             self.rescued, self.config.lost_occluders.belief)
+            if not blend:
+                return images
+            return blend_rescued(images, {s: paper(d32, environment, indirect_factor)
+                                          for s, paper in self._paper.items()},
+                                 self.rescued, self.config.lost_occluders.belief)
+        relit, environment, indirect_factor = self._relit(direction, visibility)
+
+        def image(s: str) -> np.ndarray:
+            out = self._new_sun[s].image(*relit[s], fill, direction)
+            if blend and s in self._paper:
+                _blend_into(out, self.rescued[s], self._paper[s](d32, environment, indirect_factor),
+                            self.config.lost_occluders.belief)
+            return out
+
+        return self._per_view(image)
 
     def _render_on_cluster(self, sun: object, visibility: Mapping[str, np.ndarray] | None, fill: str
                            ) -> tuple[dict[str, np.ndarray], tuple[str, np.ndarray], float]:

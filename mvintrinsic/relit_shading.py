@@ -37,7 +37,11 @@ from .image_model import LUMINANCE_WEIGHTS
 from .skymodel import preetham_relative_rgb
 
 if TYPE_CHECKING:
+    from ._cluster import _Rebuilt
+    from .caster import RelightConfig
+    from .raytrace import Tracer
     from .results import IntrinsicLayers
+    from .shadow_caster import ShadowCaster
 
 __all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "SKY_GRID_HEIGHT", "SKY_RATIO_FLOOR", "paper_environment_factors", "sky_irradiance_ratio",
            "sky_pixel_factors"]
@@ -382,3 +386,146 @@ class _PaperPixels:
         image += self.sky_shading * _sky_factor(environment, self.sky_lookup)
         image += self.indirect_shading * np.float32(indirect)
         return (image * self.reflectance).astype(np.float32)
+
+
+class _NewSun:
+    """One view's sun-independent inputs of a new sun, and the per-view steps of one (:class:`~mvintrinsic.relight.Relighter`).
+
+    Built once per view; :meth:`~mvintrinsic.relight.Relighter.render` runs these steps here, or ships this object once
+    to a dask worker and runs them there (:func:`_render_view`): the same code either way, so the
+    images are identical. It holds no Embree structure (those cannot be pickled): the caster's and
+    the proxy's are passed in.
+
+    Parameters
+    ----------
+    receivers : (H*W, 3) float64
+        Receiver points, world frame, metres (:func:`~mvintrinsic.shadow_caster.receiver_points`).
+    shape : (int, int)
+        ``(H, W)``.
+    blocked : (P + 1,) bool
+        :meth:`ShadowCaster.completion_blocked` of the view's caster.
+    min_distance : float
+        Proxy hits nearer than this (metres) complete no shadow.
+    config : RelightConfig
+    batch : int
+        Rays per Embree call.
+    normals : (H, W, 3) float32
+        Unit receiver normals, world frame.
+    base, floor : (H, W, 3) float32
+        ``S_sun' = max(base + L_sun max(0, n.d'), floor)`` (:meth:`~mvintrinsic.relight.Relighter._prepare_new_sun`).
+    fill : (H, W, 3) float32
+        The input image where the layers hold no estimate, 0 elsewhere.
+    reflectance, fill_reflectance : (H, W, 3) float32
+        ``R`` after the in-shadow fix; the same with 0 where the layers hold no estimate.
+    sky_shading, indirect_shading : (H, W, 3) float32
+        The layers' ``S_sky`` and ``S_ind``.
+    radiance : (3,) float32
+        ``L_sun`` in the view's units.
+    known : (H, W) bool
+        Pixels where the layers hold an estimate.
+    sky_lookup : _SphereLookup or None
+        ``sky="model"``: the sky irradiance table at each pixel's normal.
+    unexplained : (H, W) bool or None
+        Pixels that keep ``capture`` at every sun (:attr:`~mvintrinsic.relight.Relighter.unexplained`); None: none.
+    capture : (H, W) float32 or None
+        The capture ``v_sun`` after the in-shadow fix (:attr:`~mvintrinsic.relight.Relighter.visibility`).
+    static : (H, W) bool or None
+        Pixels whose ``v'`` is ``capture`` times the caster's (``dropped="static"``); None: none.
+    """
+
+    def __init__(self, *, receivers: np.ndarray, shape: tuple[int, int], blocked: np.ndarray, min_distance: float,
+                 config: RelightConfig, batch: int, normals: np.ndarray, base: np.ndarray, floor: np.ndarray,
+                 fill: np.ndarray, reflectance: np.ndarray, fill_reflectance: np.ndarray, sky_shading: np.ndarray,
+                 indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
+                 sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
+                 capture: np.ndarray | None = None, static: np.ndarray | None = None,
+                 sky_pixels: _SkyPixels | None = None) -> None:
+        self.unexplained, self.capture, self.static, self.sky_pixels = unexplained, capture, static, sky_pixels
+        self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
+        self.config, self.batch = config, batch
+        self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
+        self.reflectance, self.fill_reflectance = reflectance, fill_reflectance
+        self.sky_shading, self.indirect_shading = sky_shading, indirect_shading
+        self.radiance, self.known, self.sky_lookup = radiance, known, sky_lookup
+
+    def visibility(self, direction: np.ndarray, shadow_caster: ShadowCaster, tracer: Tracer) -> np.ndarray:
+        """``v'`` (H, W) float32 at the unit sun ``direction`` (:meth:`~mvintrinsic.relight.Relighter.visibility_at`)."""
+        visibility = shadow_caster._visibility(self.receivers, self.shape, direction, proxy_tracer=tracer,
+                                               blocked=self.blocked, min_distance=self.min_distance, facing=None,
+                                               config=self.config, batch=self.batch)
+        if self.static is not None:  # the shadow of a dropped cluster stays (RelightConfig.dropped)
+            visibility[self.static] *= self.capture[self.static]
+        if self.unexplained is not None:
+            np.copyto(visibility, self.capture, where=self.unexplained)
+        return visibility
+
+    def cosine(self, direction: np.ndarray) -> np.ndarray:
+        """``max(0, n . d')`` (H, W) float32 for the float32 unit sun ``direction``."""
+        cosine = self.normals @ direction
+        return np.maximum(cosine, np.float32(0.0), out=cosine)
+
+    def irradiance(self, cosine: np.ndarray, visibility: np.ndarray) -> float:
+        """``sum max(0, n . d') v'`` over the pixels with an estimate (``sky="model"``'s ``S_ind``)."""
+        return float((cosine.astype(np.float64) * visibility)[self.known].sum())
+
+    def sky_factor(self, environment: tuple[str, np.ndarray]) -> np.ndarray:
+        """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
+        return _sky_factor(environment, self.sky_lookup)
+
+    def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
+        """``S_sun'`` (H, W, 3) float32 from ``max(0, n . d')``."""
+        return _relit_sun_shading(cosine, self.radiance, self.base, self.floor)
+
+    def image(self, visibility: np.ndarray, sun_shading: np.ndarray, sky: np.ndarray, indirect: float,
+              fill: str, direction: np.ndarray | None = None) -> np.ndarray:
+        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32, the sky pixels of the fill recoloured
+        for the sun ``direction`` (:attr:`RelightConfig.sky_pixels`); ``sun_shading`` is overwritten."""
+        image = sun_shading
+        image *= visibility[..., None]
+        image += self.sky_shading * sky
+        image += self.indirect_shading * np.float32(indirect)
+        if fill == "input":  # the reflectance of the pixels without an estimate is 0 there
+            image *= self.fill_reflectance
+            image += self.fill
+            if self.sky_pixels is not None and direction is not None:
+                self.sky_pixels.recolour(image, direction)
+        else:
+            image *= self.reflectance
+        return image
+
+
+def _build_task(caster: _Rebuilt, tracer: _Rebuilt) -> None:
+    """A task: build the caster's and the proxy's Embree structures on this worker (once each)."""
+    caster.get()
+    tracer.get()
+
+
+def _new_sun_terms(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
+                   shadow_sun: np.ndarray, visibility: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A task: one view's ``(v', max(0, n . d'))`` at a new sun (``visibility`` given: that ``v'``)."""
+    if visibility is None:
+        visibility = new_sun.visibility(shadow_sun, caster.get(), tracer.get())
+    return visibility, new_sun.cosine(direction.astype(np.float32))
+
+
+def _irradiance_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray]) -> float:
+    """A task: :meth:`_NewSun.irradiance` of one view's :func:`_new_sun_terms`."""
+    visibility, cosine = terms
+    return new_sun.irradiance(cosine, visibility)
+
+
+def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, environment: tuple[str, np.ndarray],
+                indirect_factor: float, fill: str, direction: np.ndarray) -> np.ndarray:
+    """A task: one view's relit image from its :func:`_new_sun_terms`."""
+    visibility, cosine = terms
+    return new_sun.image(visibility, new_sun.sun_shading(cosine), new_sun.sky_factor(environment),
+                         indirect_factor, fill, direction)
+
+
+def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,
+                 shadow_sun: np.ndarray, visibility: np.ndarray | None, *, environment: tuple[str, np.ndarray],
+                 indirect_factor: float, fill: str) -> np.ndarray:
+    """A task: one view's relit image at a new sun (``sky="paper"``: no cross-view term)."""
+    terms = _new_sun_terms(new_sun, caster, tracer, direction, shadow_sun, visibility)
+    return _image_task(new_sun, terms, environment=environment, indirect_factor=indirect_factor, fill=fill,
+                       direction=direction)

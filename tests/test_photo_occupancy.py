@@ -212,6 +212,24 @@ def test_the_rescued_pixels_mix_the_two_hypotheses(world):
         blend_rescued(a, b, {"v0": np.ones((2, 2), bool)}, 0.5)
 
 
+def test_the_views_relight_on_two_threads_as_on_one(world):
+    # Relighter(threads=2) works on two views at once: the same images and layers to the bit,
+    # the rescued pixels' mixing included.
+    scene, decomposition = world[1], world[2]
+    config = RelightConfig(lost_occluders=OccupancyConfig(min_hits=0.3))
+    one, two = (Relighter(decomposition, scene, config=config, threads=n) for n in (1, 2))
+    assert two.rescued
+    for sun in (MOVED, CAPTURE):
+        a, b = one.render(sun), two.render(sun)
+        assert list(a) == list(b) == list(scene.stems)
+        assert all(np.array_equal(a[s], b[s]) for s in scene.stems)
+        a, b = one.layers(sun), two.layers(sun)
+        assert all(np.array_equal(a[s].shading, b[s].shading) for s in scene.stems)
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match="threads"):
+            Relighter(decomposition, scene, config=config, threads=bad)
+
+
 @pytest.mark.parametrize(("field", "value"), [("min_views", 0), ("belief", -0.1), ("belief", 1.5), ("min_views", 2.5), ("share", 0.0), ("share", 1.5),
                                               ("min_hits", -0.1), ("min_hits", 1.5),
                                               ("step", 0.0), ("start", -1.0), ("max_distance", np.inf),

@@ -41,7 +41,8 @@ brighter than the paper's dropping leaves it in the light; a false shadow finds 
 fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option, off
 by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB (the phantom eave of
 ``OccupancyConfig.silhouette``; with ``silhouette=1`` it gains 0.2-0.7 dB there instead), and each new
-sun about 30 ms per view more at 1000x750 (``docs/relight.md``, "Not the default"; profiled on demo_480
+sun about 30 ms per view more at 1000x750 (within the 100 ms budget since the relighter's two threads:
+0.074-0.078 s; ``docs/relight.md``, "Not the default" and "Speed"; profiled on demo_480
 resampled: 22% more caster rays per view, 15% of them occluded against 2.5%, 4x the time in the occlusion
 tests; the caster holds 7x the triangles, but decimating its sheets did not make them faster). Building takes
 0.5-1.3 s per 480x360 view with the true layers and 0.5-1.9 s with the pipeline's, against 0.3-0.9

@@ -17,9 +17,9 @@ For each scene (``DIR/NAME`` rendered by ``mvintrinsic synth``; ``demo`` is the 
   rate, precision and recall of the shadow class;
 * reflectance and shading LMSE of the decomposition (:func:`~mvintrinsic.evaluation.evaluate`);
 * where the scene has relit renders (``gt/relit/<tag>``), the relit PSNR above the input's (row
-  (e) minus row (a) of ``benchmarks/bench_relight.py``) per tag, with the default
-  :class:`~mvintrinsic.relight.RelightConfig` (``relight``) and with ``lost_occluders``
-  (``relight_lost_occluders``);
+  (e) minus row (a) of ``benchmarks/bench_relight.py``) per tag, with
+  :class:`~mvintrinsic.relight.RelightConfig` without ``lost_occluders`` (``relight``; the default
+  until 2026-11-29) and with ``lost_occluders=OccupancyConfig()`` (``relight_lost_occluders``);
 * the labelling's seconds (``shadow_labels``; ``shadow_labels.clear_rays`` the clear-ray test) per
   view.
 
@@ -87,7 +87,7 @@ def run_scene(folder: Path) -> dict:
     sky = {s: truth[s].sky_mask for s in scene.stems}
     inputs = {v.stem: v.image for v in scene.views}
     base = {tag: mean_psnr(inputs, images, sky)["mean"] for tag, (_, images, _) in tags.items()}
-    relight_configs = {"relight": RelightConfig(), "relight_lost_occluders": RelightConfig(lost_occluders=OccupancyConfig())}
+    relight_configs = {"relight": RelightConfig(lost_occluders=None), "relight_lost_occluders": RelightConfig(lost_occluders=OccupancyConfig())}
     out = {"size": list(scene.views[0].shape[::-1]), "views": len(scene.views)}
     for name in VARIANTS:
         result = decompose(scene, config=variant_config(name), tracer=tracer)

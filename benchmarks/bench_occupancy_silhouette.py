@@ -11,13 +11,17 @@ MVS-like proxy, the whole pipeline (:func:`mvintrinsic.decompose`, default confi
 the relit PSNR above the input's (row (e) minus row (a) of ``benchmarks/bench_relight.py``) per tag
 with three relighters:
 
-* ``default``: :class:`~mvintrinsic.relight.RelightConfig` as it is (``lost_occluders=None``);
-* ``silhouette_0``: ``lost_occluders=OccupancyConfig()`` (``silhouette=0``, the default: every
-  unexplained pixel is occupancy evidence);
-* ``silhouette_1``: ``lost_occluders=OccupancyConfig(silhouette=1)`` (a band of 1 pixel).
+* ``default``: :class:`~mvintrinsic.relight.RelightConfig` with ``lost_occluders=None`` (the
+  relighter's default until 2026-11-29, when this study made the option its default);
+* ``silhouette_0``: ``lost_occluders=OccupancyConfig()`` (``silhouette=0``, ``OccupancyConfig``'s
+  default: every unexplained pixel is occupancy evidence);
+* ``silhouette_1``: ``lost_occluders=OccupancyConfig(silhouette=1)`` (a band of 1 pixel; the
+  relighter's default since 2026-11-29, ``mvintrinsic.caster.LOST_OCCLUDERS``).
 
 and the rescued pixels (:attr:`~mvintrinsic.relight.Relighter.rescued`) per row as a share of the
-pixels. ``--smoke``: the demo only. Nothing is written unless ``--out`` is given.
+pixels, and the cross-view agreement of the relit image's shadow layer away from the true relit
+edges (``agreement_interior``, as row (e)'s in ``benchmarks/bench_relight.py``; added 2026-11-29).
+``--smoke``: the demo only. Nothing is written unless ``--out`` is given.
 """
 
 from __future__ import annotations
@@ -25,19 +29,26 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import numpy as np
+
 import mvintrinsic
-from mvintrinsic import decompose
+from mvintrinsic import Config, decompose
+from mvintrinsic.correspondence import cross_view_agreement
+from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import read_ground_truth
 from mvintrinsic.io import load_scene, write_json
 from mvintrinsic.photo_occupancy import OccupancyConfig
+from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import RelightConfig, Relighter
+from mvintrinsic.results import SHADOW_LABELS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_relight import mean_psnr, relit_tags  # noqa: E402
+from bench_relight import AGREEMENT_POINTS, mean_psnr, relit_tags, shadow_layer  # noqa: E402
+from bench_shadows import away_from_edges  # noqa: E402
 from bench_step4 import chosen_scene_folders, scene_study_parser  # noqa: E402
 
-ROWS = {"default": RelightConfig(),
+ROWS = {"default": RelightConfig(lost_occluders=None),
         "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig()),
         "silhouette_1": RelightConfig(lost_occluders=OccupancyConfig(silhouette=1))}
 
@@ -54,15 +65,26 @@ def run_scene(folder: Path) -> dict:
     inputs = {v.stem: v.image for v in scene.views}
     base = {tag: mean_psnr(inputs, images, sky)["mean"] for tag, (_, images, _) in tags.items()}
     result = decompose(scene, tracer=tracer)
+    quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
+    points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
+
+    def agreement(visibility: dict, true_lit: dict) -> float:  # as bench_relight's agreement_interior
+        labels = away_from_edges({s: np.where(np.asarray(v) >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])
+                                  for s, v in visibility.items()}, true_lit)
+        return cross_view_agreement(scene.views, quantities, labels, points).fraction
+
     pixels = sum(v.mask.size for v in scene.views)
     out = {"size": list(scene.views[0].shape[::-1]), "views": len(scene.views)}
     for row, config in ROWS.items():
         relighter = Relighter(result, scene, config=config, tracer=tracer)
         out[row] = {"relit_minus_input": {tag: mean_psnr(relighter.render(direction), images, sky)["mean"] - base[tag]
                                           for tag, (direction, images, _) in tags.items()},
-                    "rescued_share": sum(int(m.sum()) for m in relighter.rescued.values()) / pixels}
+                    "rescued_share": sum(int(m.sum()) for m in relighter.rescued.values()) / pixels,
+                    "agreement_interior": {tag: agreement(shadow_layer(relighter, relighter.visibility_at(direction)),
+                                                          vis) for tag, (direction, _, vis) in tags.items()}}
         print(f"{folder.name} {row}: " + " ".join(f"{tag} {v:+.2f}" for tag, v in out[row]["relit_minus_input"].items())
-              + f" rescued {out[row]['rescued_share']:.4f}", flush=True)
+              + f" rescued {out[row]['rescued_share']:.4f} agreement "
+              + " ".join(f"{v:.3f}" for v in out[row]["agreement_interior"].values()), flush=True)
     return out
 
 

@@ -102,8 +102,8 @@ caster from the labels alone (``RelightConfig.caster_pixels``), beside the same 
 pipeline's own layers (:func:`true_labels_scene`, an oracle; ``true_labels_summary``: the means at
 +-15 degrees): what better labels would give the relit images, and what the caster needs of them.
 
-``--timing`` only times the relighter built on the ground-truth layers (with ``--lost-occluders``
-the option on; build per view by stage,
+``--timing`` only times the relighter built on the ground-truth layers (``lost_occluders=None``;
+with ``--lost-occluders`` ``OccupancyConfig()``; the default is ``OccupancyConfig(silhouette=1)``; build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``; ``--size 1000x750``
 times a smaller scene's views and layers resampled to that size (:func:`upscaled`).
@@ -459,7 +459,8 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
     ground-truth labels and ``n_suns`` suns 5 to 25 degrees of azimuth from the capture are
     rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading). With
     ``size`` (W, H) the views and layers are first resampled to it (:func:`upscaled`). ``config``:
-    the relighter's (default ``RelightConfig()``; ``--timing --lost-occluders``: with the option).
+    the relighter's (default ``RelightConfig()``; ``--timing``: ``lost_occluders=None``, with
+    ``--lost-occluders`` ``OccupancyConfig()``).
     """
     scene = load_scene(folder)
     stems = scene.stems
@@ -1316,7 +1317,9 @@ def main(argv: list[str] | None = None) -> int:
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
     size = _parse_size(args.size) if args.size else None
-    timed = RelightConfig(lost_occluders=OccupancyConfig()) if args.lost_occluders else None  # --timing --lost-occluders
+    # --timing: the relighter without lost_occluders (as relight_timing_resampled.json), with --lost-occluders with
+    # OccupancyConfig() (relight_timing_lost_occluders.json); the default relighter is the latter with silhouette 1.
+    timed = RelightConfig(lost_occluders=OccupancyConfig() if args.lost_occluders else None)
     studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),

@@ -122,8 +122,9 @@ class OccupancyConfig:
         up their sun rays: -0.94 / -0.08 dB at az+15 / el+10 with 0, +1.12 / +1.04 with 1 (the
         default relighter +0.44 / +0.82); on the five 480x360 scenes and dev_courtyard (320x240) 1
         is -0.37 to +0.07 dB per scene (street_s0 the lowest: its rescued pixels fall from 6.3% to
-        1.3%, the band held the lost eaves' own evidence), mean -0.03 at +-15 degrees. 0 by default;
-        1 for views of 240x180 or so.
+        1.3%, the band held the lost eaves' own evidence), mean -0.03 at +-15 degrees. 0 here (Step 3's
+        :class:`ClearRaysConfig`); 1 in the relighter's default (``caster.LOST_OCCLUDERS``): never
+        below the relighter without the option on those five scenes and the demo.
     min_hits : float
         With these distances the relighter keeps a shadow cluster only when at least this share
         of its sun rays hit the proxy or find an occluder here (instead of

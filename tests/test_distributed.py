@@ -110,8 +110,8 @@ def test_relighting_on_a_cluster_is_identical(scene, serial, client, config):
     got = there.render(result.lighting.sun, visibility=here.visibility, fill="zero")
     assert all(np.array_equal(got[s], expected[s]) for s in expected)
     assert set(here.rescued) == set(there.rescued)  # their pixels mix the paper's image, here as there
-    if config.lost_occluders is not None:  # 2 views of the demo's 3 (the default's 4 could not count)
-        assert here.rescued
+    if config.lost_occluders is not None and config.lost_occluders.min_views <= len(scene.views):
+        assert here.rescued  # 2 views of the demo's 3 (the default's 4 could not count: inert)
     if config == RelightConfig():
         got = relight(result, scene, sun=(15.0, 40.0), client=client)
         assert all(np.array_equal(got[s], here.render((15.0, 40.0))[s]) for s in got)

@@ -15,6 +15,7 @@ from conftest import look_at
 
 from mvintrinsic import Proxy
 from mvintrinsic.camera import Camera
+from mvintrinsic.caster import LOST_OCCLUDERS
 from mvintrinsic.photo_occupancy import (
     ClearRaysConfig,
     OccupancyConfig,
@@ -238,6 +239,14 @@ def test_the_views_relight_on_two_threads_as_on_one(world):
 def test_config_errors_name_the_field(field, value):
     with pytest.raises(ValueError, match=field):
         OccupancyConfig(**{field: value})
+
+
+def test_the_relighter_places_lost_occluders_by_default_and_step_3_keeps_its_evidence():
+    # RelightConfig's default (docs/relight.md, "Occluders the proxy lost"): the option with the 1 px silhouette
+    # band out of the evidence; OccupancyConfig() and Step 3's clear rays keep every unexplained pixel.
+    assert RelightConfig().lost_occluders == LOST_OCCLUDERS == OccupancyConfig(silhouette=1)
+    assert OccupancyConfig().silhouette == 0 and ClearRaysConfig().occupancy == OccupancyConfig()
+    assert RelightConfig(lost_occluders=None).lost_occluders is None
 
 
 def test_the_silhouette_band_straddles_the_proxy_edge():

@@ -38,11 +38,13 @@ have ``min_hits`` (60%) of its rays hit instead of the paper's 30%: with 30%, ro
 labels shadow are lit in the truth (dark windows, a lost crown's own leaves, lit gaps under it),
 their sheets cast false shadows at the new sun and their reflectance, made for a shadow, is
 brighter than the paper's dropping leaves it in the light; a false shadow finds an occluder on
-fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). An option, off
-by default: on the 240x180 embedded demo it costs the full pipeline 0.7-1.0 dB (the phantom eave of
-``OccupancyConfig.silhouette``; with ``silhouette=1`` it gains 0.2-0.7 dB there instead), and each new
-sun about 30 ms per view more at 1000x750 (within the 100 ms budget since the relighter's two threads:
-0.074-0.078 s; ``docs/relight.md``, "Not the default" and "Speed"; profiled on demo_480
+fewer of its rays. The clusters it keeps still mix the two hypotheses (``belief``). The relighter's
+default since 2026-11-29 with ``silhouette=1`` (``caster.LOST_OCCLUDERS``; with 0 the 240x180 demo
+loses 0.7-1.0 dB, the phantom eave of ``OccupancyConfig.silhouette``): row (e) - (a) at +-15 degrees
+2.41 dB against 2.07 without it on five 480x360 scenes, row (e)'s cross-view agreement 0.006 lower
+on average (``benchmarks/bench_occupancy_silhouette.py``); each new sun about 25 ms per view more at
+1000x750 (within the 100 ms budget since the relighter's two threads: 0.074-0.078 s;
+``docs/relight.md``, "The default since 2026-11-29" and "Speed"; profiled on demo_480
 resampled: 22% more caster rays per view, 15% of them occluded against 2.5%, 4x the time in the occlusion
 tests; the caster holds 7x the triangles, but decimating its sheets did not make them faster). Building takes
 0.5-1.3 s per 480x360 view with the true layers and 0.5-1.9 s with the pipeline's, against 0.3-0.9

@@ -29,11 +29,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
-
 import mvintrinsic
 from mvintrinsic import Config, decompose
-from mvintrinsic.correspondence import cross_view_agreement
 from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import read_ground_truth
 from mvintrinsic.io import load_scene, write_json
@@ -41,11 +38,9 @@ from mvintrinsic.photo_occupancy import OccupancyConfig
 from mvintrinsic.pipeline import carry_to_pixels
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import RelightConfig, Relighter
-from mvintrinsic.results import SHADOW_LABELS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_relight import AGREEMENT_POINTS, mean_psnr, relit_tags, shadow_layer  # noqa: E402
-from bench_shadows import away_from_edges  # noqa: E402
+from bench_relight import AGREEMENT_POINTS, mean_psnr, relit_agreement, relit_tags, shadow_layer  # noqa: E402
 from bench_step4 import chosen_scene_folders, scene_study_parser  # noqa: E402
 
 ROWS = {"default": RelightConfig(lost_occluders=None),
@@ -68,11 +63,6 @@ def run_scene(folder: Path) -> dict:
     quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
     points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
 
-    def agreement(visibility: dict, true_lit: dict) -> float:  # as bench_relight's agreement_interior
-        labels = away_from_edges({s: np.where(np.asarray(v) >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])
-                                  for s, v in visibility.items()}, true_lit)
-        return cross_view_agreement(scene.views, quantities, labels, points).fraction
-
     pixels = sum(v.mask.size for v in scene.views)
     out = {"size": list(scene.views[0].shape[::-1]), "views": len(scene.views)}
     for row, config in ROWS.items():
@@ -80,8 +70,8 @@ def run_scene(folder: Path) -> dict:
         out[row] = {"relit_minus_input": {tag: mean_psnr(relighter.render(direction), images, sky)["mean"] - base[tag]
                                           for tag, (direction, images, _) in tags.items()},
                     "rescued_share": sum(int(m.sum()) for m in relighter.rescued.values()) / pixels,
-                    "agreement_interior": {tag: agreement(shadow_layer(relighter, relighter.visibility_at(direction)),
-                                                          vis) for tag, (direction, _, vis) in tags.items()}}
+                    "agreement_interior": {tag: relit_agreement(scene, quantities, points, shadow_layer(
+                        relighter, relighter.visibility_at(direction)), vis) for tag, (direction, _, vis) in tags.items()}}
         print(f"{folder.name} {row}: " + " ".join(f"{tag} {v:+.2f}" for tag, v in out[row]["relit_minus_input"].items())
               + f" rescued {out[row]['rescued_share']:.4f} agreement "
               + " ".join(f"{v:.3f}" for v in out[row]["agreement_interior"].values()), flush=True)

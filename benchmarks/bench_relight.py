@@ -278,6 +278,16 @@ def caster_summary(relighter: Relighter) -> dict:
             "pixels_dropped": int(sum(c.dropped.sum() for c in relighter.casters.values()))}
 
 
+def relit_agreement(scene, quantities, points: np.ndarray, visibility: dict, true_lit: dict | None = None) -> float:
+    """Cross-view agreement of a relit shadow state (``visibility >= 0.5`` lit) at ``points``; with ``true_lit``
+    the pixels within one pixel of a true shadow edge are not read (``agreement_interior``)."""
+    labels = {s: np.asarray(v) >= 0.5 for s, v in visibility.items()}
+    if true_lit is not None:
+        labels = away_from_edges({s: np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])
+                                  for s, lit in labels.items()}, true_lit)
+    return cross_view_agreement(scene.views, quantities, labels, points).fraction
+
+
 def shadow_layer(relighter: Relighter, visibility: dict) -> dict:
     """The relit image's shadow layer: ``visibility`` with, under ``dropped="light"`` (the paper), the
     dropped clusters' captured ``v_sun`` multiplied in, since there their shadow stays in the
@@ -314,12 +324,8 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
     mesh = MeshShadow(folder, scene)
 
-    def agreement(visibility: dict, true_lit: dict | None = None) -> float | None:
-        labels = {s: np.asarray(v) >= 0.5 for s, v in visibility.items()}
-        if true_lit is not None:  # pixels within one pixel of a true shadow edge are not read
-            labels = away_from_edges({s: np.where(lit, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"])
-                                      for s, lit in labels.items()}, true_lit)
-        return cross_view_agreement(scene.views, quantities, labels, points).fraction
+    def agreement(visibility: dict, true_lit: dict | None = None) -> float:
+        return relit_agreement(scene, quantities, points, visibility, true_lit)
 
     entry["psnr"], entry["capture_psnr"], entry["caster"] = {}, {}, {}
     entry["agreement"] = {tag: {"truth": agreement({s: vis[s] for s in stems})} for tag, (_, _, vis) in tags.items()}

@@ -1082,20 +1082,25 @@ PROXY_VARIANTS = ("loss 0.9", "loss 0.0", "fused exact depth", "exact seen by 2+
                   "stereo", "stereo, no colour test")
 
 
-def _seen_part(proxy, views, min_views: int):
-    """The triangles of a mesh proxy that the centre rays of ``min_views`` or more views hit first."""
+def mesh_subset(proxy, keep: np.ndarray):
+    """The triangles ``keep`` ((T,) bool) of a mesh proxy, its unused vertices dropped and the rest reindexed."""
     from mvintrinsic.scene import Proxy
 
+    triangles = proxy.triangles[keep]
+    used = np.unique(triangles)
+    index = np.full(len(proxy.vertices), -1, dtype=np.int64)
+    index[used] = np.arange(len(used))
+    return Proxy(vertices=proxy.vertices[used], normals=proxy.normals[used], triangles=index[triangles])
+
+
+def _seen_part(proxy, views, min_views: int):
+    """The triangles of a mesh proxy that the centre rays of ``min_views`` or more views hit first."""
     tracer = Tracer(proxy)
     count = np.zeros(len(proxy.triangles), dtype=np.int64)
     for view in views:
         hits = tracer.intersect(view.camera.center, view.camera.pixel_rays())
         count[np.unique(hits.triangle[hits.hit])] += 1
-    triangles = proxy.triangles[count >= min_views]
-    used = np.unique(triangles)
-    index = np.full(len(proxy.vertices), -1, dtype=np.int64)
-    index[used] = np.arange(len(used))
-    return Proxy(vertices=proxy.vertices[used], normals=proxy.normals[used], triangles=index[triangles])
+    return mesh_subset(proxy, count >= min_views)
 
 
 def proxy_variant(folder: Path, scene, name: str):

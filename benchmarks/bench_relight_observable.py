@@ -46,7 +46,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_relight import ROOT, MeshShadow, _relit_scene, mean_psnr
+from bench_relight import ROOT, MeshShadow, _relit_scene, mean_psnr, mesh_subset
 
 import mvintrinsic
 from mvintrinsic.evaluation import ground_truth_decomposition
@@ -105,7 +105,7 @@ def observable_scene(folder: Path) -> dict:
     seen_casters, static_shadow = {}, {}
     for k in MIN_VIEWS:
         used = count >= k
-        part = _subset(mesh, used)
+        part = mesh_subset(mesh, used)
         seen_casters[k] = _occluder(part)
         seen_capture = visibility(seen_casters[k], capture)
         # the shadow only unseen occluders cast at the capture sun: the exact mesh's, the seen part lit
@@ -128,17 +128,6 @@ def observable_scene(folder: Path) -> dict:
         out["psnr"][tag] = {row: mean_psnr(image, images, sky_mask)["mean"] for row, image in rows.items()}
         print(f"{folder.name} {tag}: " + " ".join(f"{k} {v:.2f}" for k, v in out["psnr"][tag].items()), flush=True)
     return out
-
-
-def _subset(mesh, keep: np.ndarray):
-    """The triangles ``keep`` (T,) bool of a mesh proxy, its vertices reindexed."""
-    from mvintrinsic.scene import Proxy
-
-    triangles = mesh.triangles[keep]
-    used = np.unique(triangles)
-    index = np.full(len(mesh.vertices), -1, dtype=np.int64)
-    index[used] = np.arange(len(used))
-    return Proxy(vertices=mesh.vertices[used], normals=mesh.normals[used], triangles=index[triangles])
 
 
 def summary(study: dict) -> dict:

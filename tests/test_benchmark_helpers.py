@@ -275,7 +275,7 @@ def test_observable_bound_counts_the_triangles_a_view_sees_first():
     mesh = Proxy(vertices=vertices, normals=np.tile(-forward, (12, 1)), triangles=triangles)
     assert observable.seen_counts(mesh, [view]).tolist() == [1, 1, 1, 1, 0, 0]
     assert observable.seen_counts(mesh, [view, view]).tolist() == [2, 2, 2, 2, 0, 0]
-    part = observable._subset(mesh, np.array([False, False, True, True, False, False]))
+    part = observable.mesh_subset(mesh, np.array([False, False, True, True, False, False]))
     assert len(part.vertices) == 4
     np.testing.assert_array_equal(part.vertices[part.triangles], vertices[triangles[2:4]])
 

@@ -244,14 +244,29 @@ def relit_tags(folder: Path, stems) -> dict:
     return out
 
 
+def mesh_occluder(mesh) -> ShadowCaster:
+    """A mesh (a :class:`~mvintrinsic.scene.Proxy` with triangles) as the occluder of every shadow ray, as it is."""
+    return ShadowCaster(Caster(mesh.vertices, mesh.triangles.astype(np.int32), np.zeros(0, np.int64),
+                               None, None, 0, 0, 0, 0))
+
+
+def scene_folders(args) -> dict:
+    """The scenes a benchmark scores: ``{"demo": the embedded demo}`` with ``--smoke`` or no ``--scene``,
+    else ``{NAME: DATA/NAME}`` per ``--scene`` (``args.smoke``, ``args.scene``, ``args.data``)."""
+    from mvintrinsic.cli import demo_scene_path
+
+    if args.smoke or not args.scene:
+        return {"demo": demo_scene_path()}
+    return {name: args.data / name for name in args.scene}
+
+
 class MeshShadow:
     """Shadows of the exact mesh (``gt/mesh.ply``) at its own receivers: row (c)."""
 
     def __init__(self, folder: Path, scene) -> None:
         mesh = read_proxy(folder / "gt" / "mesh.ply")
         self.tracer = tracer = Tracer(mesh)
-        self.caster = ShadowCaster(Caster(mesh.vertices, mesh.triangles.astype(np.int32), np.zeros(0, np.int64),
-                                          None, None, 0, 0, 0, 0))
+        self.caster = mesh_occluder(mesh)
         self.points, self.normals = {}, {}
         for view in scene.views:
             depth, hit = receiver_depth(view.camera, tracer)
@@ -259,10 +274,12 @@ class MeshShadow:
             normals = tracer.intersect(view.camera.center, view.camera.pixel_rays()).normals.reshape(*view.shape, 3)
             self.normals[view.stem] = np.where(hit[..., None], normals, np.nan)  # geometric, toward the camera
 
-    def visibility(self, direction: np.ndarray, config: RelightConfig) -> dict:
-        """Every pixel's own ray (``ray_stride=1``): the bound is not sampled."""
+    def visibility(self, direction: np.ndarray, config: RelightConfig, *, caster: ShadowCaster | None = None) -> dict:
+        """Every pixel's own ray (``ray_stride=1``): the bound is not sampled. ``caster``: another occluder
+        than the exact mesh (:func:`mesh_occluder`), shot from the same receivers."""
         config = dataclasses.replace(config, ray_stride=1)
-        return {s: self.caster.sun_visibility(self.points[s], self.normals[s], direction, config=config)
+        caster = self.caster if caster is None else caster
+        return {s: caster.sun_visibility(self.points[s], self.normals[s], direction, config=config)
                 for s in self.points}
 
     def render(self, plain: Relighter, direction: np.ndarray, config: RelightConfig) -> dict:
@@ -1316,12 +1333,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
-    from mvintrinsic.cli import demo_scene_path
-
-    if args.smoke or not args.scene:
-        chosen = {"demo": demo_scene_path()}
-    else:
-        chosen = {name: args.data / name for name in args.scene}
+    chosen = scene_folders(args)
     report = {"benchmark": "relight", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "config": dataclasses.asdict(RelightConfig()),
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "

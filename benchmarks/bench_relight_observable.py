@@ -48,13 +48,13 @@ import time
 from pathlib import Path
 
 import numpy as np
-from bench_relight import ROOT, MeshShadow, _relit_scene, mean_psnr, mesh_subset
+from bench_relight import ROOT, MeshShadow, _relit_scene, mean_psnr, mesh_occluder, mesh_subset, scene_folders
 
 import mvintrinsic
 from mvintrinsic.evaluation import ground_truth_decomposition
 from mvintrinsic.io import read_proxy, write_json
 from mvintrinsic.raytrace import Tracer
-from mvintrinsic.relight import Caster, RelightConfig, Relighter, ShadowCaster
+from mvintrinsic.relight import RelightConfig, Relighter
 
 #: The ``K`` of the ``seen_K`` rows: triangles seen by at least this many views.
 MIN_VIEWS = (1, 2)
@@ -79,11 +79,6 @@ def seen_counts(mesh, views) -> np.ndarray:
     return count
 
 
-def _occluder(mesh) -> ShadowCaster:
-    return ShadowCaster(Caster(mesh.vertices, mesh.triangles.astype(np.int32), np.zeros(0, np.int64),
-                               None, None, 0, 0, 0, 0))
-
-
 def observable_scene(folder: Path) -> dict:
     """Rows ``input``, ``gt_mesh``, ``gt_caster``, ``seen_K`` and ``seen_K_static`` at every relit tag."""
     scene, tags, sky_mask = _relit_scene(folder, "bench_relight_observable")
@@ -91,29 +86,24 @@ def observable_scene(folder: Path) -> dict:
     inputs = {v.stem: v.image for v in scene.views}
     truth = ground_truth_decomposition(folder, views=list(stems))
     config = RelightConfig()
-    sharp = dataclasses.replace(config, blur=0.0, ray_stride=1)
+    sharp = dataclasses.replace(config, blur=0.0)
     plain = Relighter(truth, scene, config=dataclasses.replace(config, dropped="none"))
     ours = Relighter(truth, scene, config=config)
     exact = MeshShadow(folder, scene)  # row (c): receivers, normals and occluder of gt/mesh.ply
     mesh = read_proxy(folder / "gt" / "mesh.ply")
     count = seen_counts(mesh, scene.views)
-
-    def visibility(caster: ShadowCaster, direction) -> dict:
-        return {s: caster.sun_visibility(exact.points[s], exact.normals[s], direction, config=sharp) for s in stems}
-
     capture = scene.sun.direction
-    exact_capture = visibility(exact.caster, capture)
+    exact_capture = {s: np.nan_to_num(v, nan=1.0) for s, v in exact.visibility(capture, sharp).items()}
+    in_shadow = sum(int(((exact_capture[s] < 0.5) & ~sky_mask[s]).sum()) for s in stems)
     out = {"triangles": int(len(mesh.triangles)), "seen": {}, "psnr": {}}
     seen_casters, static_shadow = {}, {}
     for k in MIN_VIEWS:
         used = count >= k
-        part = mesh_subset(mesh, used)
-        seen_casters[k] = _occluder(part)
-        seen_capture = visibility(seen_casters[k], capture)
+        seen_casters[k] = mesh_occluder(mesh_subset(mesh, used))
+        seen_capture = exact.visibility(capture, sharp, caster=seen_casters[k])
         # the shadow only unseen occluders cast at the capture sun: the exact mesh's, the seen part lit
-        static_shadow[k] = {s: np.clip(np.nan_to_num(seen_capture[s], nan=1.0) - np.nan_to_num(exact_capture[s], nan=1.0),
-                                       0.0, 1.0) for s in stems}
-        in_shadow = sum(int(((np.nan_to_num(exact_capture[s], nan=1.0) < 0.5) & ~sky_mask[s]).sum()) for s in stems)
+        static_shadow[k] = {s: np.clip(np.nan_to_num(seen_capture[s], nan=1.0) - exact_capture[s], 0.0, 1.0)
+                            for s in stems}
         unseen = sum(int(((static_shadow[k][s] >= 0.5) & ~sky_mask[s]).sum()) for s in stems)
         out["seen"][f"seen_{k}"] = {"triangles": int(used.sum()),
                                     "unseen_share_of_capture_shadow": unseen / max(in_shadow, 1)}
@@ -123,7 +113,7 @@ def observable_scene(folder: Path) -> dict:
         sun = np.asarray(direction, dtype=np.float64)
         rows = {"input": inputs, "gt_mesh": exact.render(plain, sun, config), "gt_caster": ours.render(sun)}
         for k in MIN_VIEWS:
-            moved = visibility(seen_casters[k], sun)
+            moved = exact.visibility(sun, sharp, caster=seen_casters[k])
             rows[f"seen_{k}"] = plain.render(sun, visibility=moved)
             rows[f"seen_{k}_static"] = plain.render(
                 sun, visibility={s: moved[s] * (1.0 - static_shadow[k][s]) for s in stems})
@@ -160,12 +150,7 @@ def main(argv=None) -> int:
     parser.add_argument("--scene", action="append", default=None, help="score DATA/NAME (repeatable)")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     args = parser.parse_args(argv)
-    if args.smoke or not args.scene:
-        from mvintrinsic.cli import demo_scene_path
-
-        folders = {"demo": demo_scene_path()}
-    else:
-        folders = {name: args.data / name for name in args.scene}
+    folders = scene_folders(args)
     study = {}
     start = time.perf_counter()
     for name, folder in folders.items():

@@ -102,8 +102,9 @@ caster from the labels alone (``RelightConfig.caster_pixels``), beside the same 
 pipeline's own layers (:func:`true_labels_scene`, an oracle; ``true_labels_summary``: the means at
 +-15 degrees): what better labels would give the relit images, and what the caster needs of them.
 
-``--timing`` only times the relighter built on the ground-truth layers (``lost_occluders=None``;
-with ``--lost-occluders`` ``OccupancyConfig()``; the default is ``OccupancyConfig(silhouette=1)``; build per view by stage,
+``--timing`` only times the relighter built on the ground-truth layers (``--timed-occluders``: ``none``,
+``lost_occluders=None``, by default; ``occupancy``, ``OccupancyConfig()``, also chosen by ``--lost-occluders``;
+``default``, the relighter's default ``OccupancyConfig(silhouette=1)``; build per view by stage,
 and each new sun per view) for scenes with or without relit renders, e.g. the 1000x750 speed
 scene: ``python benchmarks/bench_relight.py --timing --scene courtyard_1000``; ``--size 1000x750``
 times a smaller scene's views and layers resampled to that size (:func:`upscaled`).
@@ -482,8 +483,7 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
     ground-truth labels and ``n_suns`` suns 5 to 25 degrees of azimuth from the capture are
     rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading). With
     ``size`` (W, H) the views and layers are first resampled to it (:func:`upscaled`). ``config``:
-    the relighter's (default ``RelightConfig()``; ``--timing``: ``lost_occluders=None``, with
-    ``--lost-occluders`` ``OccupancyConfig()``).
+    the relighter's (default ``RelightConfig()``; ``--timing``: as ``--timed-occluders`` says).
     """
     scene = load_scene(folder)
     stems = scene.stems
@@ -502,7 +502,9 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
         relighter.render(sun)
     per_sun = (time.perf_counter() - start) / n_suns
     h, w = scene.views[0].shape
-    out = {"size": f"{w}x{h}", "views": len(stems), "lost_occluders": relighter.config.lost_occluders is not None, "proxy_triangles": len(scene.proxy.triangles),
+    out = {"size": f"{w}x{h}", "views": len(stems), "lost_occluders": relighter.config.lost_occluders is not None,
+           "occupancy": (None if relighter.config.lost_occluders is None
+                         else dataclasses.asdict(relighter.config.lost_occluders)), "proxy_triangles": len(scene.proxy.triangles),
            "build_per_view": build / len(stems), **{k: v / len(stems) for k, v in relighter.timings.items()},
            "render_per_sun_per_view": per_sun / len(stems), "suns": n_suns}
     print(f"{folder.name}: " + " ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in out.items()),
@@ -1298,6 +1300,10 @@ def save_figure(panels: dict, path: Path) -> None:
     plt.close(fig)
 
 
+#: ``--timed-occluders``: the ``RelightConfig.lost_occluders`` of the timed relighter.
+TIMED_OCCLUDERS = {"none": None, "occupancy": OccupancyConfig(), "default": RelightConfig().lost_occluders}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--smoke", action="store_true", help="the embedded demo only (the default)")
@@ -1326,6 +1332,10 @@ def main(argv: list[str] | None = None) -> int:
                         help="only row (e) with Steps 3-4 fed the true shadow labels, three relighters (true_labels_scene)")
     parser.add_argument("--sky-pixels", action="store_true",
                         help="only compare RelightConfig.sky_pixels' modes on the sky pixels (sky_pixels_scene)")
+    parser.add_argument("--timed-occluders", choices=TIMED_OCCLUDERS, default=None,
+                        help="with --timing: RelightConfig.lost_occluders of the timed relighter: none (the paper; "
+                             "default), occupancy (OccupancyConfig(), as --lost-occluders) or default (the relighter's "
+                             "default, OccupancyConfig(silhouette=1))")
     parser.add_argument("--proxy-variant", action="append", default=None, choices=PROXY_VARIANTS,
                         help="with --proxy-loss: only this proxy (repeatable); default all")
     parser.add_argument("--update", action="store_true",
@@ -1340,9 +1350,11 @@ def main(argv: list[str] | None = None) -> int:
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
     size = _parse_size(args.size) if args.size else None
-    # --timing: the relighter without lost_occluders (as relight_timing_resampled.json), with --lost-occluders with
-    # OccupancyConfig() (relight_timing_lost_occluders.json); the default relighter is the latter with silhouette 1.
-    timed = RelightConfig(lost_occluders=OccupancyConfig() if args.lost_occluders else None)
+    # --timing: the relighter without lost_occluders (relight_timing_resampled.json), with OccupancyConfig()
+    # (--lost-occluders or --timed-occluders occupancy: relight_timing_lost_occluders.json), or the default relighter
+    # (--timed-occluders default, silhouette 1: relight_timing_default.json).
+    timed = RelightConfig(lost_occluders=TIMED_OCCLUDERS[args.timed_occluders or
+                                                         ("occupancy" if args.lost_occluders else "none")])
     studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
@@ -1354,6 +1366,8 @@ def main(argv: list[str] | None = None) -> int:
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)
     for flag, key, study in studies:
         if getattr(args, flag):
+            if key == "timing":
+                report["timed_config"] = dataclasses.asdict(timed)
             report[key] = {name: study(folder) for name, folder in chosen.items()}
             if key == "proxy_loss":
                 if args.update and args.out and args.out.is_file():

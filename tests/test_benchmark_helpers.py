@@ -183,6 +183,17 @@ def test_lost_occluders_summary_averages_the_15_degree_suns():
     assert summary["lost_occluders"]["e_minus_a_min"] == -1.0
 
 
+def test_timed_occluders_follow_the_relighters_default():
+    # bench_relight --timing --timed-occluders default must time what RelightConfig() builds.
+    import bench_relight
+    from mvintrinsic.caster import RelightConfig
+    from mvintrinsic.photo_occupancy import OccupancyConfig
+
+    assert bench_relight.TIMED_OCCLUDERS["default"] == RelightConfig().lost_occluders
+    assert bench_relight.TIMED_OCCLUDERS["occupancy"] == OccupancyConfig()
+    assert bench_relight.TIMED_OCCLUDERS["none"] is None
+
+
 def test_true_shadow_labels_replace_the_labelling_and_restore_it(monkeypatch):
     # bench_relight --true-labels (an oracle): the multi-view labelling's output keeps its
     # undecided pixels and takes the truth's labels (lit at v >= 0.5) and visibility elsewhere.

@@ -22,6 +22,9 @@ and the rescued pixels (:attr:`~mvintrinsic.relight.Relighter.rescued`) per row 
 pixels, and the cross-view agreement of the relit image's shadow layer away from the true relit
 edges (``agreement_interior``, as row (e)'s in ``benchmarks/bench_relight.py``; added 2026-11-29).
 ``--smoke``: the demo only. Nothing is written unless ``--out`` is given.
+
+All three with ``support_radius=0``: the study was made, and its JSON written, before the supported parts of the
+shadow clusters (``RelightConfig.support_radius``, 2026-11-29), which add pixels to ``rescued``.
 """
 
 from __future__ import annotations
@@ -43,9 +46,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_relight import AGREEMENT_POINTS, mean_psnr, relit_agreement, relit_tags, shadow_layer  # noqa: E402
 from bench_step4 import chosen_scene_folders, scene_study_parser  # noqa: E402
 
-ROWS = {"default": RelightConfig(lost_occluders=None),
-        "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig()),
-        "silhouette_1": RelightConfig(lost_occluders=OccupancyConfig(silhouette=1))}
+ROWS = {"default": RelightConfig(lost_occluders=None, support_radius=0),
+        "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig(), support_radius=0),
+        "silhouette_1": RelightConfig(lost_occluders=OccupancyConfig(silhouette=1), support_radius=0)}
 
 
 def run_scene(folder: Path) -> dict:

@@ -78,19 +78,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy import ndimage
 
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
 from .photo_occupancy import OccupancyConfig
 from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
-from .results import SHADOW_LABELS
+from .shadow_clusters import TAU_S, kept_clusters, shadow_pixels, supported_parts
 
 __all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "LOST_OCCLUDERS", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
-
-#: 8-connectivity of the shadow clusters.
-_EIGHT = np.ones((3, 3), dtype=bool)
 
 #: ``primitive_ids`` of a ray that hits nothing (open3d's ``RaycastingScene.INVALID_ID``).
 _INVALID_ID = np.iinfo(np.uint32).max
@@ -238,9 +234,16 @@ class RelightConfig:
         480x360 scenes (2.07 without), above the option off at all 22 of their scene-suns and on the 240x180 demo
         (where ``silhouette`` 0 loses 1.4 dB), -0.19 to +0.04 on dev_courtyard (``docs/relight.md``, "Occluders the
         proxy lost"). None: the paper.
+    support_radius : int
+        Pixels; a part of a shadow cluster the paper's rule drops is lifted when, within this radius, the share of
+        its pixels whose rays find an occluder reaches the rule's (:func:`~mvintrinsic.shadow_clusters.supported_parts`:
+        Step 3's labels join true shadows with unsupported ones into clusters the rule drops whole); >= 0, 0: the
+        paper's rule alone. With ``lost_occluders`` these parts and their sheets are rendered as the expected image
+        over the shadow and the paper's dropping (``belief``). Beyond the paper; 10 (5 within 0.1 dB of it):
+        ``docs/relight.md``, "Supported parts of the shadow clusters".
     """
 
-    tau_s: float = 0.8
+    tau_s: float = TAU_S
     caster_pixels: str = "paper"
     epsilon: int = 3
     min_cluster: int = 100
@@ -259,6 +262,7 @@ class RelightConfig:
     consistency: float | None = 0.3
     fusion: str | None = "capture"
     lost_occluders: OccupancyConfig | None = LOST_OCCLUDERS
+    support_radius: int = 10
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),
@@ -274,7 +278,7 @@ class RelightConfig:
         if not is_real(self.turbidity) or not 0.0 < self.turbidity < np.inf:
             raise ValueError(f"turbidity must be a finite number > 0, got {self.turbidity!r}")
         object.__setattr__(self, "turbidity", float(self.turbidity))
-        for name, least in (("epsilon", 0), ("min_cluster", 1), ("ray_stride", 1)):
+        for name, least in (("epsilon", 0), ("min_cluster", 1), ("ray_stride", 1), ("support_radius", 0)):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < least:
                 raise ValueError(f"{name} must be an integer >= {least}, got {value!r}")
@@ -329,6 +333,16 @@ class Caster:
         ``min_proxy_hits`` (or no hit at all).
     n_removed : int
         Triangles removed for being first hit by more than ``epsilon`` rays from lit pixels.
+    uncertain : (M,) bool or None
+        Triangles lifted from :attr:`parts`: their new shadows may be mixed with those of the caster without them
+        (``belief``, :meth:`~mvintrinsic.shadow_caster.ShadowCaster.sun_visibility`). None: none.
+    uncertain_primitives : (J,) int64 or None
+        The :attr:`proxy_primitives` only the rays of :attr:`parts` hit: without the parts they complete shadows
+        (:meth:`~mvintrinsic.shadow_caster.ShadowCaster.completion_blocked`). None: none.
+    parts : (H, W) bool or None
+        The kept pixels outside the clusters the cluster rule keeps whole, the supported parts
+        (:attr:`RelightConfig.support_radius`, :func:`~mvintrinsic.shadow_clusters.supported_parts`); None for a
+        merged caster.
 
     Notes
     -----
@@ -344,10 +358,16 @@ class Caster:
     n_small: int
     n_unsupported: int
     n_removed: int
+    uncertain: np.ndarray | None = None
+    uncertain_primitives: np.ndarray | None = None
+    parts: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         vertices = as_array(self.vertices, "vertices", shape=(None, 3), dtype=np.float64)
         triangles = as_array(self.triangles, "triangles", shape=(None, 3), dtype=np.int32)
+        for name, shape, dtype in (("uncertain", (len(triangles),), bool), ("uncertain_primitives", (None,), np.int64)):
+            if getattr(self, name) is not None:
+                object.__setattr__(self, name, as_array(getattr(self, name), name, shape=shape, dtype=dtype))
         if len(triangles) and (triangles.min() < 0 or triangles.max() >= len(vertices)):
             raise ValueError(f"triangles index vertices outside [0, {len(vertices)})")
         primitives = as_array(self.proxy_primitives, "proxy_primitives", shape=(None,), dtype=np.int64)
@@ -361,6 +381,10 @@ class Caster:
             dropped = as_array(self.dropped, "dropped", shape=shadow.shape, dtype=bool)
             object.__setattr__(self, "shadow", shadow)
             object.__setattr__(self, "dropped", dropped)
+        if self.parts is not None:
+            if self.shadow is None:
+                raise ValueError("parts needs the shadow mask")
+            object.__setattr__(self, "parts", as_array(self.parts, "parts", shape=self.shadow.shape, dtype=bool))
         for name in ("n_clusters", "n_small", "n_unsupported", "n_removed"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
@@ -429,38 +453,6 @@ def _rays(origins: np.ndarray, direction: np.ndarray):
 # ---------------------------------------------------------------------------------------------
 # receiver
 # ---------------------------------------------------------------------------------------------
-def shadow_pixels(labels: np.ndarray, v_sun: np.ndarray | None, *, tau_s: float = RelightConfig.tau_s) -> np.ndarray:
-    """Pixels in shadow for the caster: labelled shadow, or ``v_sun < tau_s`` (Sec. 8).
-
-    Parameters
-    ----------
-    labels : (H, W) uint8 array_like
-        Step-3 shadow labels, codes of :data:`mvintrinsic.results.SHADOW_LABELS`.
-    v_sun : (H, W) float array_like or None
-        Sun visibility in [0, 1]; NaN (no estimate) never counts as shadow. ``None``: labels only.
-    tau_s : float, optional
-        Visibility threshold in [0, 1].
-
-    Returns
-    -------
-    (H, W) bool
-        ``(labels == shadow) | (v_sun < tau_s)``, and never where ``labels == undecided``.
-    """
-    labels = _image_array(labels, "labels", None, np.int64)
-    codes = list(SHADOW_LABELS.values())
-    bad = ~np.isin(labels, codes)
-    if bad.any():
-        raise ValueError(f"labels may only hold {codes}, got {np.unique(labels[bad])[:5].tolist()}")
-    if not is_real(tau_s) or not 0.0 <= tau_s <= 1.0:
-        raise ValueError(f"tau_s must be a number in [0, 1], got {tau_s!r}")
-    shadow = labels == SHADOW_LABELS["shadow"]
-    if v_sun is not None:
-        v = _image_array(v_sun, "v_sun", labels.shape, np.float64, finite=False)
-        with np.errstate(invalid="ignore"):
-            shadow |= v < tau_s  # NaN < tau_s is False
-    return shadow & (labels != SHADOW_LABELS["undecided"])
-
-
 # ---------------------------------------------------------------------------------------------
 # caster
 # ---------------------------------------------------------------------------------------------
@@ -642,11 +634,14 @@ def build_caster(
     hit = np.isfinite(t)
 
     kept, *counts = kept_clusters(shadow, hit, config.min_cluster, config.min_proxy_hits)  # n_clusters, small, unsupported
+    clusters = kept.copy()
+    kept |= supported_parts(shadow, hit, config.min_cluster, config.min_proxy_hits, config.support_radius)
     dropped = shadow & ~kept
     primitives = np.unique(hits.triangle[kept[rows, cols] & hits.hit])
 
     if not kept.any():
-        return Caster(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), primitives, kept, dropped, *counts, 0)
+        return Caster(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int32), primitives, kept, dropped, *counts, 0,
+                      parts=np.zeros_like(kept))
 
     # Missed rays take the distance of the nearest kept pixel whose ray hit.
     valid = kept & hit
@@ -655,24 +650,16 @@ def build_caster(
     # Receiver distance from the camera centre (along the pixel ray for receiver_points' points).
     ray_distance = np.linalg.norm(receiver - camera.center, axis=-1)
     vertices, triangles = _footprint_mesh(camera, kept, ray_distance, lift, sun)
+    # The supported parts' triangles (per kept pixel in np.nonzero order, _footprint_mesh's two halves) and the
+    # proxy primitives only their rays hit are uncertain.
+    parts = kept & ~clusters
+    uncertain = np.tile(parts[kept], 2)
+    uncertain_primitives = np.setdiff1d(hits.triangle[parts[rows, cols] & hits.hit],
+                                        hits.triangle[clusters[rows, cols] & hits.hit]).astype(np.int64)
 
     # Triangles first hit by more than epsilon sun rays from lit pixels contradict the image.
-    caster = Caster(vertices, triangles, primitives, kept, dropped, *counts, 0)
+    caster = Caster(vertices, triangles, primitives, kept, dropped, *counts, 0, uncertain, uncertain_primitives, parts)
     return remove_contradicted(caster, [receiver[lit]], sun, config=config, batch=batch)
-
-
-def kept_clusters(shadow: np.ndarray, hit: np.ndarray, min_cluster: int, min_share: float
-                  ) -> tuple[np.ndarray, int, int, int]:
-    """The paper's cluster rule (Sec. 8): the pixels, (H, W) bool, of the 8-connected clusters of ``shadow``
-    with >= ``min_cluster`` pixels and >= ``min_share`` (and one) ``hit``; the counts of clusters, small, unsupported."""
-    clusters, n_clusters = ndimage.label(shadow, structure=_EIGHT)
-    size = np.bincount(clusters.ravel(), minlength=n_clusters + 1)
-    n_hits = np.bincount(clusters.ravel(), weights=hit.ravel(), minlength=n_clusters + 1)
-    small = size < min_cluster
-    unsupported = ~small & ((n_hits / np.maximum(size, 1) < min_share) | (n_hits == 0))
-    small[0] = unsupported[0] = False  # label 0 is the background
-    keep = ~(small | unsupported) & (np.arange(n_clusters + 1) > 0)
-    return keep[clusters], n_clusters, int(small.sum()), int(unsupported.sum())
 
 
 def _first_hit_counts(vertices: np.ndarray, triangles: np.ndarray, points: Sequence[np.ndarray],
@@ -728,7 +715,8 @@ def remove_contradicted(caster: Caster, lit_points: Sequence[np.ndarray], sun_di
     triangles = caster.triangles[~bad]
     used, triangles = np.unique(triangles, return_inverse=True)
     return replace(caster, vertices=caster.vertices[used], triangles=triangles.reshape(-1, 3).astype(np.int32),
-                   n_removed=caster.n_removed + int(bad.sum()))
+                   n_removed=caster.n_removed + int(bad.sum()),
+                   uncertain=None if caster.uncertain is None else caster.uncertain[~bad])
 
 
 def contradicted_primitives(tracer: Tracer, lit_points: Sequence[np.ndarray], sun_direction: np.ndarray, *,
@@ -890,9 +878,18 @@ def merge_casters(casters: Sequence[Caster]) -> Caster:
     if len(vertices) > np.iinfo(np.int32).max:
         raise ValueError(f"casters: the merged mesh has {len(vertices)} vertices, more than int32 indices can hold")
     primitives = np.unique(np.concatenate([c.proxy_primitives for c in casters]))
+    uncertain = unsure = None
+    if any(c.uncertain is not None for c in casters):
+        uncertain = np.concatenate([np.zeros(len(c.triangles), bool) if c.uncertain is None else c.uncertain
+                                    for c in casters])
+        # A primitive some caster stands for with certain pixels is certain in the merged one.
+        unsure = [c.uncertain_primitives for c in casters if c.uncertain_primitives is not None]
+        sure = [np.setdiff1d(c.proxy_primitives, () if c.uncertain_primitives is None else c.uncertain_primitives)
+                for c in casters]
+        unsure = np.setdiff1d(np.concatenate(unsure or [np.zeros(0, np.int64)]), np.concatenate(sure))
     return Caster(vertices, triangles.astype(np.int32), primitives, None, None,
                   sum(c.n_clusters for c in casters), sum(c.n_small for c in casters),
-                  sum(c.n_unsupported for c in casters), sum(c.n_removed for c in casters))
+                  sum(c.n_unsupported for c in casters), sum(c.n_removed for c in casters), uncertain, unsure)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -355,6 +355,9 @@ class Relighter:
             occupancy = photo_occupancy(scene.views, {s: hits[s].t.reshape(known[s].shape) for s in self.stems},
                                         known, nearest, config=config.lost_occluders)
             rule = replace(config, min_proxy_hits=max(config.min_proxy_hits, config.lost_occluders.min_hits))
+        # lost_occluders' belief < 1: the pixels kept only thanks to its distances or as supported parts are the
+        # expected image over the two hypotheses (their shadow is real, or a mislabelling), the parts' new shadows too.
+        self._belief = config.lost_occluders.belief if occupancy is not None else 1.0
         timings["consistency"] += time.perf_counter() - start
         for index, view in enumerate(scene.views):
             stem, camera, hit = view.stem, view.camera, hits[view.stem].hit.reshape(view.shape)
@@ -380,9 +383,9 @@ class Relighter:
                 r, v = _into_light(layers, r, v, dropped)
             reflectance[stem] = _read_only(np.array(r, dtype=np.float32))
             visibility[stem] = _read_only(np.array(v, dtype=np.float32))
-            if occupancy is not None and config.lost_occluders.belief < 1:  # kept, and dropped by the paper's rule
+            if self._belief < 1:  # kept, and dropped by the paper's rule; and the supported parts
                 rescued[stem] = casters[stem].shadow & ~kept_clusters(lifted, lifted & ~missed, config.min_cluster,
-                                                                      config.min_proxy_hits)[0]
+                                                                      config.min_proxy_hits)[0] | casters[stem].parts
 
         start = time.perf_counter()
         excluded = np.zeros(0, dtype=np.int64)
@@ -431,7 +434,7 @@ class Relighter:
         # The sun-independent inputs of every new sun, once (module docstring, "Speed").
         start = time.perf_counter()
         self._turbidity = lighting.sky.turbidity if lighting.sky is not None else config.turbidity
-        self._new_sun = {s: self._prepare_new_sun(s, cosine[s], excluded) for s in self.stems}
+        self._new_sun = {s: self._prepare_new_sun(s, cosine[s], excluded, rescued.get(s)) for s in self.stems}
         timings["new_sun_setup"] = time.perf_counter() - start
         # The sun irradiance of the receivers at capture, the denominator of S_ind's scale.
         self._sun_irradiance = sum(float((cosine[s] * visibility[s])[known[s]].sum()) for s in self.stems)
@@ -597,7 +600,8 @@ class Relighter:
                             np.where(keep | (config.dropped == "static"), v[rescued], 1.0).astype(np.float32),
                             _SphereLookup(normals, NORMAL_GRID_HEIGHT, self.up) if config.sky == "model" else None)
 
-    def _prepare_new_sun(self, stem: str, cosine: np.ndarray, excluded: np.ndarray) -> _NewSun:
+    def _prepare_new_sun(self, stem: str, cosine: np.ndarray, excluded: np.ndarray,
+                         rescued: np.ndarray | None = None) -> _NewSun:
         """The sun-independent inputs of a new sun of one view, float32, once (module docstring).
 
         ``S_sun' = max(S_sun - L_sun max(0, n.d) + L_sun max(0, n.d'), min(S_sun, 0))`` where the
@@ -618,8 +622,12 @@ class Relighter:
                                    & (rays @ self.up > 0))
             sky_pixels = (_SkyPixels(index, rays[index], self.sun, how=config.sky_pixels, turbidity=self._turbidity,
                                      up=self.up) if len(index) else None)
-        blocked = self.shadow_casters[stem].completion_blocked(
-            self.tracer, excluded if config.method == "multiview" else None)
+        excluded = excluded if config.method == "multiview" else None
+        blocked = self.shadow_casters[stem].completion_blocked(self.tracer, excluded)
+        full = None  # the rescued pixels' own moved shadow is that of every sheet (their hypothesis)
+        if self._belief < 1 and self.shadow_casters[stem]._mixed:  # and under the paper's hypothesis
+            blocked = (blocked, self.shadow_casters[stem].completion_blocked(self.tracer, excluded, certain=True))
+            full = None if rescued is None or not rescued.any() else rescued.ravel()
         return _NewSun(
             receivers=self.receivers[stem].reshape(-1, 3),  # a view, no copy
             shape=layers.shape, blocked=blocked,
@@ -633,7 +641,7 @@ class Relighter:
                         if config.sky == "model" else None),
             unexplained=self.unexplained.get(stem), capture=self.visibility[stem],
             static=(self.casters[stem].dropped if config.dropped == "static" and self.casters[stem].dropped.any()
-                    else None), sky_pixels=sky_pixels)
+                    else None), sky_pixels=sky_pixels, belief=self._belief, full=full)
 
     def _environment(self, direction: np.ndarray) -> tuple[tuple[str, np.ndarray], float | None]:
         """The environment's change at a new sun: ``(how, table)`` for :meth:`_NewSun.sky_factor`,

@@ -402,8 +402,9 @@ class _NewSun:
         Receiver points, world frame, metres (:func:`~mvintrinsic.shadow_caster.receiver_points`).
     shape : (int, int)
         ``(H, W)``.
-    blocked : (P + 1,) bool
-        :meth:`ShadowCaster.completion_blocked` of the view's caster.
+    blocked : (P + 1,) bool, or a pair of them
+        :meth:`ShadowCaster.completion_blocked` of the view's caster; with ``belief < 1`` and uncertain sheets,
+        the pair (all, ``certain=True``).
     min_distance : float
         Proxy hits nearer than this (metres) complete no shadow.
     config : RelightConfig
@@ -431,6 +432,11 @@ class _NewSun:
         The capture ``v_sun`` after the in-shadow fix (:attr:`~mvintrinsic.relight.Relighter.visibility`).
     static : (H, W) bool or None
         Pixels whose ``v'`` is ``capture`` times the caster's (``dropped="static"``); None: none.
+    belief : float
+        :meth:`ShadowCaster.sun_visibility`'s ``belief`` (the caster's uncertain sheets).
+    full : (H*W,) bool or None
+        Pixels whose ``v'`` is that of every sheet, not the mixture (the rescued pixels: the relighter mixes
+        their images, :func:`~mvintrinsic.photo_occupancy.blend_rescued`).
     """
 
     def __init__(self, *, receivers: np.ndarray, shape: tuple[int, int], blocked: np.ndarray, min_distance: float,
@@ -439,8 +445,9 @@ class _NewSun:
                  indirect_shading: np.ndarray, radiance: np.ndarray, known: np.ndarray,
                  sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
                  capture: np.ndarray | None = None, static: np.ndarray | None = None,
-                 sky_pixels: _SkyPixels | None = None) -> None:
+                 sky_pixels: _SkyPixels | None = None, belief: float = 1.0, full: np.ndarray | None = None) -> None:
         self.unexplained, self.capture, self.static, self.sky_pixels = unexplained, capture, static, sky_pixels
+        self.belief, self.full = belief, full
         self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
         self.config, self.batch = config, batch
         self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
@@ -452,7 +459,8 @@ class _NewSun:
         """``v'`` (H, W) float32 at the unit sun ``direction`` (:meth:`~mvintrinsic.relight.Relighter.visibility_at`)."""
         visibility = shadow_caster._visibility(self.receivers, self.shape, direction, proxy_tracer=tracer,
                                                blocked=self.blocked, min_distance=self.min_distance, facing=None,
-                                               config=self.config, batch=self.batch)
+                                               config=self.config, batch=self.batch, belief=self.belief,
+                                               full=self.full)
         if self.static is not None:  # the shadow of a dropped cluster stays (RelightConfig.dropped)
             visibility[self.static] *= self.capture[self.static]
         if self.unexplained is not None:

@@ -211,6 +211,11 @@ class ShadowCaster:
             raise TypeError(f"caster must be a Caster, got {describe(caster)}")
         self.caster = caster
         self._scene = triangle_scene(caster.vertices, caster.triangles) if len(caster.triangles) else None
+        # With uncertain triangles (Caster.uncertain), the others alone: the paper's hypothesis of the mixture.
+        uncertain = caster.uncertain if caster.uncertain is not None and caster.uncertain.any() else None
+        self._mixed = uncertain is not None
+        self._certain = (triangle_scene(caster.vertices, caster.triangles[~uncertain])
+                         if uncertain is not None and not uncertain.all() else None)
 
     def occluded(self, origins: np.ndarray, sun_direction: np.ndarray, *, batch: int = DEFAULT_BATCH) -> np.ndarray:
         """Whether the caster blocks each ray ``origins + s d``, ``s > 0``; (N,) bool.
@@ -245,10 +250,12 @@ class ShadowCaster:
         """:meth:`occluded` on checked inputs (the per-sun hot path: no copy, no finiteness scan)."""
         return self._query(origins, sun, False, bool, lambda rays: self._scene.test_occlusions(rays), batch)
 
-    def _query(self, origins: np.ndarray, sun: np.ndarray, empty, dtype, query, batch: int) -> np.ndarray:
-        """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` without a caster."""
+    def _query(self, origins: np.ndarray, sun: np.ndarray, empty, dtype, query, batch: int, *,
+               scene: bool = True) -> np.ndarray:
+        """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` without a caster
+        (``scene`` False: without the certain triangles' structure)."""
         out = np.full(len(origins), empty, dtype=dtype)
-        if self._scene is None:
+        if (self._scene if scene else self._certain) is None:
             return out
         for start in range(0, len(origins), batch):
             sl = slice(start, start + batch)
@@ -267,6 +274,7 @@ class ShadowCaster:
         up: np.ndarray = (0.0, 0.0, 1.0),
         config: RelightConfig | None = None,
         batch: int = DEFAULT_BATCH,
+        belief: float = 1.0,
     ) -> np.ndarray:
         """The new shadow layer: sun visibility of every pixel for a new sun (paper Sec. 8).
 
@@ -300,6 +308,11 @@ class ShadowCaster:
             ``ray_offset`` and ``blur`` are used.
         batch : int, optional
             Rays per Embree call.
+        belief : float, optional
+            In [0, 1]. Below 1, a ray that only :attr:`Caster.uncertain` triangles block is shadowed by ``belief``
+            plus ``1 - belief`` times the proxy's completion of it: the expected shadow over the hypotheses that
+            their pixels' shadow is real or a mislabelling the paper drops (:mod:`.shadow_clusters`). 1: every
+            triangle shadows.
 
         Returns
         -------
@@ -314,6 +327,8 @@ class ShadowCaster:
         """
         config = config_or_default(config, RelightConfig)
         sun = _check_sun(sun_direction, up)
+        if not is_real(belief) or not 0.0 <= belief <= 1.0:
+            raise ValueError(f"belief must be a number in [0, 1], got {belief!r}")
         points = _image_array(receiver_points, "receiver_points", None, np.float64, trailing=(3,))
         shape = points.shape[:2]
         blocked = None
@@ -324,6 +339,8 @@ class ShadowCaster:
             if excluded is not None:
                 excluded = as_array(excluded, "excluded", shape=(None,), dtype=np.int64)
             blocked = self.completion_blocked(proxy_tracer, excluded)
+            if self._mixed and belief < 1.0:
+                blocked = (blocked, self.completion_blocked(proxy_tracer, excluded, certain=True))
         facing = None
         if normals is not None:
             n = _image_array(normals, "normals", shape, np.float64, trailing=(3,), finite=False).reshape(-1, 3)
@@ -331,47 +348,81 @@ class ShadowCaster:
                 facing = ~((n @ sun) <= 0.0)  # NaN <= 0 is False: no normal, no attached shadow
         return self._visibility(points.reshape(-1, 3), shape, sun, proxy_tracer=proxy_tracer, blocked=blocked,
                                 min_distance=float(min_distance) if proxy_tracer is not None else 0.0,
-                                facing=facing, config=config, batch=batch)
+                                facing=facing, config=config, batch=batch, belief=float(belief))
 
-    def completion_blocked(self, proxy_tracer: Tracer, excluded: np.ndarray | None = None) -> np.ndarray:
+    def completion_blocked(self, proxy_tracer: Tracer, excluded: np.ndarray | None = None, *,
+                           certain: bool = False) -> np.ndarray:
         """Per proxy primitive, whether a first hit on it completes no shadow; (P + 1,) bool.
 
-        True for the primitives the caster stands for (:attr:`Caster.proxy_primitives`), for
-        ``excluded`` ones, and in the last entry, which a miss (primitive -1) reads. A lookup
-        built once per view and sun-independent, so each new sun costs one gather.
+        True for the primitives the caster stands for (:attr:`Caster.proxy_primitives`; with ``certain``, without
+        :attr:`Caster.uncertain_primitives`: the paper's hypothesis of ``belief``), for ``excluded`` ones, and in
+        the last entry, which a miss (primitive -1) reads. A lookup built once per view and sun-independent, so
+        each new sun costs one gather.
         """
         n = proxy_tracer.n_primitives
         blocked = np.zeros(n + 1, dtype=bool)
-        for ids in (self.caster.proxy_primitives, () if excluded is None else excluded):
+        stands = self.caster.proxy_primitives
+        if certain and self.caster.uncertain_primitives is not None:
+            stands = np.setdiff1d(stands, self.caster.uncertain_primitives)
+        for ids in (stands, () if excluded is None else excluded):
             ids = np.asarray(ids, dtype=np.int64)
             blocked[ids[(ids >= 0) & (ids < n)]] = True  # other ids name no primitive: no hit reads them
         blocked[-1] = True
         return blocked
 
     def _visibility(self, points: np.ndarray, shape: tuple[int, int], sun: np.ndarray, *,
-                    proxy_tracer: Tracer | None, blocked: np.ndarray | None, min_distance: float,
-                    facing: np.ndarray | None, config: RelightConfig, batch: int) -> np.ndarray:
-        """:meth:`sun_visibility` on checked inputs: ``points`` (H*W, 3) float64, ``sun`` unit."""
+                    proxy_tracer: Tracer | None, blocked, min_distance: float,
+                    facing: np.ndarray | None, config: RelightConfig, batch: int, belief: float = 1.0,
+                    full: np.ndarray | None = None) -> np.ndarray:
+        """:meth:`sun_visibility` on checked inputs: ``points`` (H*W, 3) float64, ``sun`` unit; ``blocked``
+        :meth:`completion_blocked`'s table, or with ``belief < 1`` its pair (all, certain); ``full`` (H*W,) bool:
+        the pixels that take every sheet's shadow rather than the mixture."""
         offset = config.ray_offset * sun
+        mixed = self._mixed and belief < 1.0
+        blocked_certain = None
+        if isinstance(blocked, tuple):
+            blocked, blocked_certain = blocked
 
         def shaded(index: np.ndarray) -> np.ndarray:
             # Offset toward the sun in float64, then float32 as Embree takes them.
             origins = (points[index] + offset).astype(np.float32)
             shade = self._occluded(origins, sun, batch=batch)
+            loose = np.zeros(0, dtype=np.int64)  # rays only the uncertain triangles block (belief < 1)
+            if mixed:
+                blocked_rays = np.flatnonzero(shade)
+                loose = blocked_rays[~self._query(origins[blocked_rays], sun, False, bool,
+                                                  lambda rays: self._certain.test_occlusions(rays), batch, scene=False)]
+            open_rays = np.flatnonzero(~shade)
+            paper = np.zeros(len(open_rays) + len(loose), dtype=bool)  # the shadow under the paper's hypothesis
             if proxy_tracer is not None:
                 # Only rays the caster let through can change: the proxy's rays go to those alone.
                 # A proxy hit completes the shadow unless the caster stands for its primitive, a
                 # lit pixel contradicted it or it lies nearer than ``min_distance`` (``blocked``).
-                open_rays = np.flatnonzero(~shade)
-                t, primitive = proxy_tracer.first_primitive(origins[open_rays], sun, batch=batch)
+                asked = np.concatenate([open_rays, loose])
+                t, primitive = proxy_tracer.first_primitive(origins[asked], sun, batch=batch)
                 # t counts from the offset origin.
-                shade[open_rays] = ~blocked[primitive] & (t + np.float32(config.ray_offset) >= min_distance)
+                far = t + np.float32(config.ray_offset) >= min_distance
+                shade[open_rays] = ~blocked[primitive[:len(open_rays)]] & far[:len(open_rays)]
+                if blocked_certain is not None:
+                    paper = ~blocked_certain[primitive] & far
+            if mixed:  # the expected shadow over the hypotheses: belief * (all sheets) + (1 - belief) * (paper's)
+                value = shade.astype(np.float32) * np.float32(belief)
+                sure = np.ones(len(shade), dtype=bool)
+                sure[open_rays] = False
+                sure[loose] = False
+                value[sure] = 1.0  # the certain sheets block under both hypotheses
+                hypothesis = np.concatenate([open_rays, loose])
+                value[hypothesis] += np.float32(1.0 - belief) * paper
+                if full is not None:
+                    own = full[index]
+                    value[own] = shade[own]
+                shade = value
             if facing is not None:
-                shade |= ~facing[index]
+                shade[~facing[index]] = True
             return shade
 
         shade = _strided(shaded, shape, config.ray_stride)
-        visibility = (~shade).reshape(shape).astype(np.float32)
+        visibility = (1.0 - shade.astype(np.float32)).reshape(shape)
         if config.blur > 0:
             # scipy.ndimage.gaussian_filter(sigma=blur, mode="nearest")'s kernel (radius 4 sigma, edges
             # repeated), 6x faster in OpenCV; the two differ by at most 3e-7.

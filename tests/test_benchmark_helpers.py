@@ -186,6 +186,7 @@ def test_lost_occluders_summary_averages_the_15_degree_suns():
 def test_timed_occluders_follow_the_relighters_default():
     # bench_relight --timing --timed-occluders default must time what RelightConfig() builds.
     import bench_relight
+
     from mvintrinsic.caster import RelightConfig
     from mvintrinsic.photo_occupancy import OccupancyConfig
 

@@ -188,12 +188,13 @@ def test_the_rescued_pixels_mix_the_two_hypotheses(world):
     points, normals, ground = truth["v0"]
     captured = exact_shadow(true, points, normals, ground, CAPTURE)
 
+    # support_radius=0: the clusters alone (the supported parts mix alike: tests/test_relight.py).
     def relighter(belief):
         return Relighter(decomposition, scene, config=RelightConfig(
-            blur=0.0, lost_occluders=OccupancyConfig(min_hits=0.3, belief=belief)))
+            blur=0.0, support_radius=0, lost_occluders=OccupancyConfig(min_hits=0.3, belief=belief)))
 
     mixed, moved = relighter(0.25), relighter(1.0)
-    paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0))
+    paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0, support_radius=0))
     assert not moved.rescued and "rescued" not in moved.timings and mixed.timings["rescued"] > 0
     assert mixed.rescued["v0"][captured].all()
     assert not mixed.rescued["v0"][~ground].any()

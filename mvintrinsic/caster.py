@@ -40,6 +40,8 @@ Deviations from the paper, with their reasons
 * **Cluster filtering before filling**: no kept pixel borrows a dropped cluster's distance; a
   cluster with no proxy hit is always dropped.
 * **Occluders the proxy lost** (by default, :attr:`RelightConfig.lost_occluders`, :mod:`.photo_occupancy`).
+* **Supported parts of the dropped clusters** (by default, :attr:`RelightConfig.support_radius`,
+  :mod:`.shadow_clusters`): their triangles are :attr:`Caster.uncertain`.
 * **Ray offset.** Rays start ``ray_offset`` metres (0.02, a TSDF voxel, as Step 1) toward the sun from the receiver
   points, against self-intersection; the caster distances are measured from the receiver point itself.
 * **Which lit pixels vote.** By default every pixel outside the shadow mask casts an ``epsilon`` ray; the caller may

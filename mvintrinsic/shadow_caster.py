@@ -211,11 +211,15 @@ class ShadowCaster:
             raise TypeError(f"caster must be a Caster, got {describe(caster)}")
         self.caster = caster
         self._scene = triangle_scene(caster.vertices, caster.triangles) if len(caster.triangles) else None
-        # With uncertain triangles (Caster.uncertain), the others alone: the paper's hypothesis of the mixture.
+        # With uncertain triangles (Caster.uncertain), the certain and the uncertain ones apart: a mixed query asks
+        # the first of every ray and the second of the rays the first lets through, no dearer than the union.
         uncertain = caster.uncertain if caster.uncertain is not None and caster.uncertain.any() else None
         self._mixed = uncertain is not None
-        self._certain = (triangle_scene(caster.vertices, caster.triangles[~uncertain])
-                         if uncertain is not None and not uncertain.all() else None)
+        self._certain = self._uncertain = None
+        if uncertain is not None:
+            self._uncertain = triangle_scene(caster.vertices, caster.triangles[uncertain])
+            if not uncertain.all():
+                self._certain = triangle_scene(caster.vertices, caster.triangles[~uncertain])
 
     def occluded(self, origins: np.ndarray, sun_direction: np.ndarray, *, batch: int = DEFAULT_BATCH) -> np.ndarray:
         """Whether the caster blocks each ray ``origins + s d``, ``s > 0``; (N,) bool.
@@ -253,14 +257,21 @@ class ShadowCaster:
     def _query(self, origins: np.ndarray, sun: np.ndarray, empty, dtype, query, batch: int, *,
                scene: bool = True) -> np.ndarray:
         """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` without a caster
-        (``scene`` False: without the certain triangles' structure)."""
+        (``scene`` False: ``query`` is ``(scene, rays) -> result`` and ``scene`` the structure it asks, or None)."""
         out = np.full(len(origins), empty, dtype=dtype)
-        if (self._scene if scene else self._certain) is None:
+        if scene is True and self._scene is None or scene is None:
             return out
         for start in range(0, len(origins), batch):
             sl = slice(start, start + batch)
             out[sl] = query(_rays(origins[sl], sun)).numpy()
         return out
+
+    def _blocks(self, structure, origins: np.ndarray, sun: np.ndarray, batch: int) -> np.ndarray:
+        """Occlusion of each ray by one of the structures (None: none), (N,) bool."""
+        if structure is None:
+            return np.zeros(len(origins), dtype=bool)
+        return self._query(origins, sun, False, bool, lambda rays: structure.test_occlusions(rays), batch,
+                           scene=structure)
 
     def sun_visibility(
         self,
@@ -386,12 +397,14 @@ class ShadowCaster:
         def shaded(index: np.ndarray) -> np.ndarray:
             # Offset toward the sun in float64, then float32 as Embree takes them.
             origins = (points[index] + offset).astype(np.float32)
-            shade = self._occluded(origins, sun, batch=batch)
             loose = np.zeros(0, dtype=np.int64)  # rays only the uncertain triangles block (belief < 1)
             if mixed:
-                blocked_rays = np.flatnonzero(shade)
-                loose = blocked_rays[~self._query(origins[blocked_rays], sun, False, bool,
-                                                  lambda rays: self._certain.test_occlusions(rays), batch, scene=False)]
+                shade = self._blocks(self._certain, origins, sun, batch)
+                through = np.flatnonzero(~shade)
+                loose = through[self._blocks(self._uncertain, origins[through], sun, batch)]
+                shade[loose] = True
+            else:
+                shade = self._occluded(origins, sun, batch=batch)
             open_rays = np.flatnonzero(~shade)
             paper = np.zeros(len(open_rays) + len(loose), dtype=bool)  # the shadow under the paper's hypothesis
             if proxy_tracer is not None:

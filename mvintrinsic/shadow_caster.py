@@ -320,9 +320,10 @@ class ShadowCaster:
         batch : int, optional
             Rays per Embree call.
         belief : float, optional
-            In [0, 1]. Below 1, a ray that only :attr:`Caster.uncertain` triangles block is shadowed by ``belief``
-            plus ``1 - belief`` times the proxy's completion of it: the expected shadow over the hypotheses that
-            their pixels' shadow is real or a mislabelling the paper drops (:mod:`.shadow_clusters`). 1: every
+            In [0, 1]. Below 1, every ray's shadow is ``belief`` times its shadow with every triangle plus ``1 -
+            belief`` times its shadow without the :attr:`Caster.uncertain` ones, whose proxy primitives
+            (:attr:`Caster.uncertain_primitives`) then complete shadows: the expected shadow over the hypotheses
+            that their pixels' shadow is real or a mislabelling the paper drops (:mod:`.shadow_clusters`). 1: every
             triangle shadows.
 
         Returns

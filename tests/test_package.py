@@ -20,7 +20,7 @@ PACKAGE = Path(mvintrinsic.__file__).parent
 CORE_LAYERS = [
     "_version", "_validation", "_cluster", "_libusb", "camera", "scene", "results", "image_model", "envmap", "skymodel", "environment", "raytrace", "stereo", "env_shading",
     "sun_position", "exposure", "pixels", "resolution", "correspondence", "photo_occupancy", "sun_calibration", "segmentation", "shadow_mrf",
-    "multiview_shadows", "laplacian", "matting", "env_refine", "occluders", "model_choice", "caster", "shadow_caster", "relit_shading", "relight",
+    "multiview_shadows", "laplacian", "matting", "env_refine", "occluders", "model_choice", "shadow_clusters", "caster", "shadow_caster", "relit_shading", "relight",
     "pipeline",
 ]
 EDGE = {"io", "files", "result_folder", "errors", "metrics", "cli", "__main__", "evaluation", "preview", "__init__"}

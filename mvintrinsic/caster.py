@@ -40,7 +40,7 @@ Deviations from the paper, with their reasons
 * **Cluster filtering before filling**: no kept pixel borrows a dropped cluster's distance; a
   cluster with no proxy hit is always dropped.
 * **Occluders the proxy lost** (by default, :attr:`RelightConfig.lost_occluders`, :mod:`.photo_occupancy`).
-* **Supported parts of the dropped clusters** (by default, :attr:`RelightConfig.support_radius`,
+* **Supported parts of the dropped clusters** (an option, :attr:`RelightConfig.support_radius`,
   :mod:`.shadow_clusters`): their triangles are :attr:`Caster.uncertain`.
 * **Ray offset.** Rays start ``ray_offset`` metres (0.02, a TSDF voxel, as Step 1) toward the sun from the receiver
   points, against self-intersection; the caster distances are measured from the receiver point itself.
@@ -240,9 +240,10 @@ class RelightConfig:
         Pixels; a part of a shadow cluster the paper's rule drops is lifted when, within this radius, the share of
         its pixels whose rays find an occluder reaches the rule's (:func:`~mvintrinsic.shadow_clusters.supported_parts`:
         Step 3's labels join true shadows with unsupported ones into clusters the rule drops whole); >= 0, 0: the
-        paper's rule alone. With ``lost_occluders`` these parts and their sheets are rendered as the expected image
-        over the shadow and the paper's dropping (``belief``). Beyond the paper; 10 (5 within 0.1 dB of it):
-        ``docs/relight.md``, "Supported parts of the shadow clusters".
+        paper's rule alone (default). With ``lost_occluders``, the parts and their sheets are the expected image over
+        the shadow and the paper's dropping (``belief``). Beyond the paper; 10 gains 0.23 dB on row (d) and 0.39 on
+        row (e) (five 480x360 scenes) but each new sun takes 0.095-0.113 s per view at 1000x750, over the 0.1 s
+        budget: an option (``docs/relight.md``, "Supported parts of the shadow clusters").
     """
 
     tau_s: float = TAU_S
@@ -264,7 +265,7 @@ class RelightConfig:
     consistency: float | None = 0.3
     fusion: str | None = "capture"
     lost_occluders: OccupancyConfig | None = LOST_OCCLUDERS
-    support_radius: int = 10
+    support_radius: int = 0
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),

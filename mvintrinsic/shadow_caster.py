@@ -398,35 +398,32 @@ class ShadowCaster:
         def shaded(index: np.ndarray) -> np.ndarray:
             # Offset toward the sun in float64, then float32 as Embree takes them.
             origins = (points[index] + offset).astype(np.float32)
-            loose = np.zeros(0, dtype=np.int64)  # rays only the uncertain triangles block (belief < 1)
+            paper = None  # with belief < 1: the shadow without the uncertain triangles (the paper's hypothesis)
             if mixed:
-                shade = self._blocks(self._certain, origins, sun, batch)
-                through = np.flatnonzero(~shade)
-                loose = through[self._blocks(self._uncertain, origins[through], sun, batch)]
-                shade[loose] = True
+                paper = self._blocks(self._certain, origins, sun, batch)
+                through = np.flatnonzero(~paper)  # the uncertain triangles may block these alone
+                shade = paper.copy()
+                shade[through] = self._blocks(self._uncertain, origins[through], sun, batch)
+                asked = through  # the proxy's completion under both hypotheses
             else:
                 shade = self._occluded(origins, sun, batch=batch)
-            open_rays = np.flatnonzero(~shade)
-            paper = np.zeros(len(open_rays) + len(loose), dtype=bool)  # the shadow under the paper's hypothesis
+                asked = np.flatnonzero(~shade)
             if proxy_tracer is not None:
                 # Only rays the caster let through can change: the proxy's rays go to those alone.
                 # A proxy hit completes the shadow unless the caster stands for its primitive, a
                 # lit pixel contradicted it or it lies nearer than ``min_distance`` (``blocked``).
-                asked = np.concatenate([open_rays, loose])
                 t, primitive = proxy_tracer.first_primitive(origins[asked], sun, batch=batch)
                 # t counts from the offset origin.
                 far = t + np.float32(config.ray_offset) >= min_distance
-                shade[open_rays] = ~blocked[primitive[:len(open_rays)]] & far[:len(open_rays)]
-                if blocked_certain is not None:
-                    paper = ~blocked_certain[primitive] & far
+                if mixed:
+                    shade[asked] |= ~blocked[primitive] & far
+                    if blocked_certain is not None:
+                        paper[asked] = ~blocked_certain[primitive] & far
+                else:
+                    shade[asked] = ~blocked[primitive] & far
             if mixed:  # the expected shadow over the hypotheses: belief * (all sheets) + (1 - belief) * (paper's)
-                value = shade.astype(np.float32) * np.float32(belief)
-                sure = np.ones(len(shade), dtype=bool)
-                sure[open_rays] = False
-                sure[loose] = False
-                value[sure] = 1.0  # the certain sheets block under both hypotheses
-                hypothesis = np.concatenate([open_rays, loose])
-                value[hypothesis] += np.float32(1.0 - belief) * paper
+                value = np.where(shade, np.float32(belief), np.float32(0.0))
+                value += np.where(paper, np.float32(1.0 - belief), np.float32(0.0))
                 if full is not None:
                     own = full[index]
                     value[own] = shade[own]

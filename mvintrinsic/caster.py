@@ -886,10 +886,9 @@ def merge_casters(casters: Sequence[Caster]) -> Caster:
         uncertain = np.concatenate([np.zeros(len(c.triangles), bool) if c.uncertain is None else c.uncertain
                                     for c in casters])
         # A primitive some caster stands for with certain pixels is certain in the merged one.
-        unsure = [c.uncertain_primitives for c in casters if c.uncertain_primitives is not None]
-        sure = [np.setdiff1d(c.proxy_primitives, () if c.uncertain_primitives is None else c.uncertain_primitives)
-                for c in casters]
-        unsure = np.setdiff1d(np.concatenate(unsure or [np.zeros(0, np.int64)]), np.concatenate(sure))
+        own = [np.zeros(0, np.int64) if c.uncertain_primitives is None else c.uncertain_primitives for c in casters]
+        sure = [np.setdiff1d(c.proxy_primitives, u) for c, u in zip(casters, own, strict=True)]
+        unsure = np.setdiff1d(np.concatenate(own), np.concatenate(sure))
     return Caster(vertices, triangles.astype(np.int32), primitives, None, None,
                   sum(c.n_clusters for c in casters), sum(c.n_small for c in casters),
                   sum(c.n_unsupported for c in casters), sum(c.n_removed for c in casters), uncertain, unsure)

@@ -255,11 +255,11 @@ class ShadowCaster:
         return self._query(origins, sun, False, bool, lambda rays: self._scene.test_occlusions(rays), batch)
 
     def _query(self, origins: np.ndarray, sun: np.ndarray, empty, dtype, query, batch: int, *,
-               scene: bool = True) -> np.ndarray:
-        """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` without a caster
-        (``scene`` False: ``query`` is ``(scene, rays) -> result`` and ``scene`` the structure it asks, or None)."""
+               structure=True) -> np.ndarray:
+        """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` when the structure it
+        asks (``structure``; True: the whole caster's) does not exist."""
         out = np.full(len(origins), empty, dtype=dtype)
-        if scene is True and self._scene is None or scene is None:
+        if (self._scene if structure is True else structure) is None:
             return out
         for start in range(0, len(origins), batch):
             sl = slice(start, start + batch)
@@ -267,11 +267,9 @@ class ShadowCaster:
         return out
 
     def _blocks(self, structure, origins: np.ndarray, sun: np.ndarray, batch: int) -> np.ndarray:
-        """Occlusion of each ray by one of the structures (None: none), (N,) bool."""
-        if structure is None:
-            return np.zeros(len(origins), dtype=bool)
+        """Occlusion of each ray by the certain or the uncertain triangles' structure (None: none), (N,) bool."""
         return self._query(origins, sun, False, bool, lambda rays: structure.test_occlusions(rays), batch,
-                           scene=structure)
+                           structure=structure)
 
     def sun_visibility(
         self,

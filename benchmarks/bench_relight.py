@@ -3,7 +3,7 @@
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
                                        | --proxy-loss | --error-split | --sky-pixels
                                        | --lost-occluders | --sun-radiance | --true-labels]
-                                       [--out benchmarks/results/relight.json]
+                                       [--relight-config JSON] [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
 Scenes: the embedded demo (240x180, 6 views, relit tags ``az+15`` and ``el+10``) by default and
@@ -51,6 +51,11 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
   over the non-sky pixels, without and with the blur (a check of the bound);
 * ``seconds_per_view``: building the relighter (receivers, casters, merged caster and BVH) and
   rendering one sun, per view; ``decompose_seconds``.
+
+``--relight-config '{"support_radius": 10}'`` (a JSON object of
+:class:`~mvintrinsic.relight.RelightConfig` keywords) changes every relighter the run builds, rows
+and studies alike, from the package's defaults (the report's ``config`` records the result): how a
+run with an option is reproduced.
 
 ``--sky-pixels`` only compares the colours :attr:`~mvintrinsic.relight.RelightConfig.sky_pixels` gives
 the sky pixels, by :func:`sky_psnr` (:func:`sky_pixels_scene`).
@@ -170,6 +175,35 @@ ROWS = ("input", "gt_proxy", "gt_mesh", "gt_mesh_blurred", "gt_caster", "pipelin
 BOUND_ROWS = ("input", "gt_mesh", "gt_caster", "pipeline", "gt_truth", "gt_best", "pipeline_mesh", "pipeline_truth",
               "pipeline_best")
 
+#: ``--relight-config``: keyword overrides of every :class:`~mvintrinsic.relight.RelightConfig` this
+#: benchmark builds (its rows' and its studies' alike), e.g. ``{"support_radius": 10}``; empty: the
+#: package's defaults. The report's ``config`` records the resulting configuration.
+CONFIG_OVERRIDES: dict = {}
+
+
+def relight_config(**options) -> RelightConfig:
+    """:class:`~mvintrinsic.relight.RelightConfig` with ``options`` over :data:`CONFIG_OVERRIDES`."""
+    return RelightConfig(**{**CONFIG_OVERRIDES, **options})
+
+
+def _parse_overrides(text: str | None) -> dict:
+    """``--relight-config``'s JSON object -> RelightConfig keywords (``lost_occluders``: an object of
+    :class:`~mvintrinsic.photo_occupancy.OccupancyConfig` keywords, or null)."""
+    if not text:
+        return {}
+    try:
+        options = json.loads(text)
+    except json.JSONDecodeError as error:
+        raise SystemExit(f"--relight-config: not JSON ({error})") from None
+    fields = {f.name for f in dataclasses.fields(RelightConfig)}
+    if not isinstance(options, dict) or set(options) - fields:
+        raise SystemExit(f"--relight-config: expected an object of RelightConfig fields ({', '.join(sorted(fields))}), "
+                         f"got {text!r}")
+    if isinstance(options.get("lost_occluders"), dict):
+        options["lost_occluders"] = OccupancyConfig(**options["lost_occluders"])
+    RelightConfig(**options)  # validated here, before any scene is read
+    return options
+
 
 def relit_psnr(estimate: np.ndarray, truth: np.ndarray, sky_mask: np.ndarray) -> float:
     """PSNR of a relit image against the path-traced relit render, dB.
@@ -212,7 +246,7 @@ def sky_pixels_scene(folder: Path) -> dict:
     result = decompose(scene, tracer=tracer)
     out: dict = {}
     for mode in SKY_PIXEL_MODES:
-        relighter = Relighter(result, scene, config=RelightConfig(sky_pixels=mode), tracer=tracer)
+        relighter = Relighter(result, scene, config=relight_config(sky_pixels=mode), tracer=tracer)
         entry = out[mode] = {}
         for tag, (direction, images, _) in tags.items():
             rendered = relighter.render(direction)
@@ -352,9 +386,9 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     entry["mesh_visibility_iou"] = {}
     entry["seconds_per_view"] = {}
     figure = {"stem": stems[0], "input": inputs[stems[0]], "tags": {}}
-    default = RelightConfig()
+    default = relight_config()
     for sky in SKY_ADJUSTMENTS:
-        config = RelightConfig(sky=sky)
+        config = relight_config(sky=sky)
         plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
         relighters = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):
@@ -421,20 +455,20 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
     """Rows (d) and (e) under other caster options (the default environment adjustment), and their
     cross-view agreement away from the true edges (``agreement(visibility, true_lit)``)."""
     out = {}
-    default = RelightConfig()
+    default = relight_config()
     variants = {"default (multiview votes, own casters)": default,
-                "multiview votes, merged caster": RelightConfig(casters="merged"),
-                "paper (own view's votes, full completion, own casters)": RelightConfig(method="paper"),
-                "paper, merged caster": RelightConfig(method="paper", casters="merged"),
-                "default, completion_distance 0": RelightConfig(completion_distance=0.0),
-                "default, min_proxy_hits 0": RelightConfig(min_proxy_hits=0.0),
-                "default, min_cluster 20": RelightConfig(min_cluster=20),
-                "default, no blur": RelightConfig(blur=0.0),
-                "default, dropped clusters' shadow in the shadow layer (dropped static)": RelightConfig(dropped="static"),
-                "default, dropped clusters moved like every pixel (dropped none)": RelightConfig(dropped="none"),
-                "default, unexplained pixels moved too (consistency None)": RelightConfig(consistency=None),
-                "default, each view alone (fusion None)": RelightConfig(fusion=None),
-                "default, fused over every view (fusion all)": RelightConfig(fusion="all")}
+                "multiview votes, merged caster": relight_config(casters="merged"),
+                "paper (own view's votes, full completion, own casters)": relight_config(method="paper"),
+                "paper, merged caster": relight_config(method="paper", casters="merged"),
+                "default, completion_distance 0": relight_config(completion_distance=0.0),
+                "default, min_proxy_hits 0": relight_config(min_proxy_hits=0.0),
+                "default, min_cluster 20": relight_config(min_cluster=20),
+                "default, no blur": relight_config(blur=0.0),
+                "default, dropped clusters' shadow in the shadow layer (dropped static)": relight_config(dropped="static"),
+                "default, dropped clusters moved like every pixel (dropped none)": relight_config(dropped="none"),
+                "default, unexplained pixels moved too (consistency None)": relight_config(consistency=None),
+                "default, each view alone (fusion None)": relight_config(fusion=None),
+                "default, fused over every view (fusion all)": relight_config(fusion="all")}
     for label, config in variants.items():
         out[label] = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):
@@ -613,9 +647,9 @@ def softness_scene(folder: Path) -> dict:
     stems = scene.stems
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
     tracer = Tracer(scene.proxy)
-    config = RelightConfig(ray_stride=1, blur=0.0)
+    config = relight_config(ray_stride=1, blur=0.0)
     relighter = Relighter(ground_truth, scene, config=config, tracer=tracer)
-    blur = RelightConfig().blur
+    blur = relight_config().blur
     cameras = {view.stem: view.camera for view in scene.views}
     blocked = {s: relighter.shadow_casters[s].completion_blocked(tracer, relighter.excluded_primitives)
                for s in stems}
@@ -669,12 +703,12 @@ def lost_occluders_scene(folder: Path) -> dict:
               "pipeline": decompose(scene, tracer=tracer)}
     inputs = {v.stem: v.image for v in scene.views}
     mesh = MeshShadow(folder, scene)
-    plain = Relighter(layers["gt_caster"], scene, config=RelightConfig(dropped="none"), tracer=tracer)
+    plain = Relighter(layers["gt_caster"], scene, config=relight_config(dropped="none"), tracer=tracer)
     out = {"input": {}, "gt_mesh": {}}
     for tag, (direction, images, _) in tags.items():
         out["input"][tag] = mean_psnr(inputs, images, sky_mask)["mean"]
-        out["gt_mesh"][tag] = mean_psnr(mesh.render(plain, direction, RelightConfig()), images, sky_mask)["mean"]
-    for option, config in (("off", RelightConfig(lost_occluders=None)), ("lost_occluders", RelightConfig(lost_occluders=OccupancyConfig()))):
+        out["gt_mesh"][tag] = mean_psnr(mesh.render(plain, direction, relight_config()), images, sky_mask)["mean"]
+    for option, config in (("off", relight_config(lost_occluders=None)), ("lost_occluders", relight_config(lost_occluders=OccupancyConfig()))):
         out[option] = {}
         for row, decomposition in layers.items():
             start = time.perf_counter()
@@ -735,9 +769,9 @@ def sun_radiance_scene(folder: Path) -> dict:
     level = image_model.luminance(true_sun) / image_model.luminance(estimate)
     factors = {"pipeline": np.ones(3), "pipeline_true_sun": true_sun / estimate,
                "pipeline_true_level": np.full(3, level), "pipeline_true_colour": true_sun / estimate / level}
-    relighters = {"gt_caster": Relighter(truth_layers, scene, config=RelightConfig(), tracer=tracer)}
+    relighters = {"gt_caster": Relighter(truth_layers, scene, config=relight_config(), tracer=tracer)}
     for row, factor in factors.items():
-        relighters[row] = Relighter(with_sun_radiance(result, inputs, factor), scene, config=RelightConfig(), tracer=tracer)
+        relighters[row] = Relighter(with_sun_radiance(result, inputs, factor), scene, config=relight_config(), tracer=tracer)
     out = {"sun_radiance": estimate.tolist(), "true_sun_radiance": true_sun.tolist(),
            "over_truth": (estimate / true_sun).tolist(), "psnr": {}}
     for tag, (direction, images, _) in tags.items():
@@ -819,8 +853,8 @@ def true_labels_scene(folder: Path) -> dict:
     with _true_shadow_labels(truth):
         layers["true_labels"] = decompose(scene, tracer=tracer)
     layers["gt"] = ground_truth_decomposition(folder, views=list(stems))
-    option = RelightConfig(lost_occluders=OccupancyConfig())
-    configs = {"": RelightConfig(), "_option": option,
+    option = relight_config(lost_occluders=OccupancyConfig())
+    configs = {"": relight_config(), "_option": option,
                "_option_labels_caster": dataclasses.replace(option, caster_pixels="labels")}
     relighters = {f"{name}{suffix}": Relighter(layers[name], scene, config=config, tracer=tracer)
                   for name in ("pipeline", "true_labels") for suffix, config in configs.items()}
@@ -896,7 +930,7 @@ def bounds_scene(folder: Path) -> dict:
     tracer = Tracer(scene.proxy)
     print(f"{folder.name}: decomposing {len(stems)} views", flush=True)
     layers = {"gt": ground_truth_decomposition(folder, views=list(stems)), "pipeline": decompose(scene, tracer=tracer)}
-    config = RelightConfig()
+    config = relight_config()
     ours = {name: Relighter(d, scene, config=config, tracer=tracer) for name, d in layers.items()}
     plain = {name: Relighter(d, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
              for name, d in layers.items()}
@@ -1013,7 +1047,7 @@ def error_split_scene(folder: Path) -> dict:
     truth = read_ground_truth(folder, views=list(stems))
     capture_lit = {s: np.asarray(truth[s].sun_visibility, dtype=np.float64) >= 0.5 for s in stems}
     tracer = Tracer(scene.proxy)
-    config = RelightConfig()
+    config = relight_config()
     ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
     plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
     mesh = MeshShadow(folder, scene)
@@ -1061,7 +1095,7 @@ def receivers_scene(folder: Path) -> dict:
     inputs = {v.stem: v.image for v in scene.views}
     tracer = Tracer(scene.proxy)
     truth = ground_truth_decomposition(folder, views=list(stems))
-    config = RelightConfig()
+    config = relight_config()
     ours = Relighter(truth, scene, config=config, tracer=tracer)
     plain = Relighter(truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
     mesh = MeshShadow(folder, scene)
@@ -1195,7 +1229,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
     labels = np.load(folder / "gt" / "mesh_faces.npz")["label"]
     truth = ground_truth_decomposition(folder, views=list(stems))
     mesh = MeshShadow(folder, scene)
-    config = RelightConfig()
+    config = relight_config()
     out = {}
     own_result = None  # the decomposition on the scene's own proxy, for the "stereo" variant's relight-only row
     for name in variants:
@@ -1340,12 +1374,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --proxy-loss: only this proxy (repeatable); default all")
     parser.add_argument("--update", action="store_true",
                         help="with --proxy-loss: merge into the report at --out instead of replacing it")
+    parser.add_argument("--relight-config", default=None, metavar="JSON",
+                        help='overrides of every RelightConfig the benchmark builds, e.g. \'{"support_radius": 10}\'')
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
+    CONFIG_OVERRIDES.clear()
+    CONFIG_OVERRIDES.update(_parse_overrides(args.relight_config))
     chosen = scene_folders(args)
     report = {"benchmark": "relight", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
-              "python": platform.python_version(), "config": dataclasses.asdict(RelightConfig()),
+              "python": platform.python_version(), "config": dataclasses.asdict(relight_config()),
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
@@ -1353,7 +1391,7 @@ def main(argv: list[str] | None = None) -> int:
     # --timing: the relighter without lost_occluders (relight_timing_resampled.json), with OccupancyConfig()
     # (--lost-occluders or --timed-occluders occupancy: relight_timing_lost_occluders.json), or the default relighter
     # (--timed-occluders default, silhouette 1: relight_timing_default.json).
-    timed = RelightConfig(lost_occluders=TIMED_OCCLUDERS[args.timed_occluders or
+    timed = relight_config(lost_occluders=TIMED_OCCLUDERS[args.timed_occluders or
                                                          ("occupancy" if args.lost_occluders else "none")])
     studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),

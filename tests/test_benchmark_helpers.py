@@ -195,6 +195,29 @@ def test_timed_occluders_follow_the_relighters_default():
     assert bench_relight.TIMED_OCCLUDERS["none"] is None
 
 
+def test_relight_config_overrides_reach_every_relighter_and_are_checked():
+    # bench_relight --relight-config: the overrides change every RelightConfig the benchmark builds
+    # (explicit keywords still win) and a wrong field is refused before any scene is read.
+    import bench_relight
+
+    from mvintrinsic.caster import RelightConfig
+    from mvintrinsic.photo_occupancy import OccupancyConfig
+
+    options = bench_relight._parse_overrides('{"support_radius": 10, "lost_occluders": {"silhouette": 0}}')
+    assert options == {"support_radius": 10, "lost_occluders": OccupancyConfig(silhouette=0)}
+    assert bench_relight._parse_overrides(None) == {}
+    for bad in ('{"radius": 10}', "[1]", "{support_radius: 10}", '{"support_radius": -1}'):
+        with pytest.raises((SystemExit, ValueError), match="relight-config|support_radius"):
+            bench_relight._parse_overrides(bad)
+    try:
+        bench_relight.CONFIG_OVERRIDES.update(support_radius=10)
+        assert bench_relight.relight_config() == RelightConfig(support_radius=10)
+        assert bench_relight.relight_config(support_radius=0, blur=0.0) == RelightConfig(blur=0.0)
+    finally:
+        bench_relight.CONFIG_OVERRIDES.clear()
+    assert bench_relight.relight_config() == RelightConfig()
+
+
 def test_true_shadow_labels_replace_the_labelling_and_restore_it(monkeypatch):
     # bench_relight --true-labels (an oracle): the multi-view labelling's output keeps its
     # undecided pixels and takes the truth's labels (lit at v >= 0.5) and visibility elsewhere.

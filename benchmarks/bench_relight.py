@@ -23,8 +23,8 @@ tags. For every relit tag ``gt/relit/<tag>`` (``docs/formats.md``) the relit vie
     the relighter's blur (``RelightConfig.blur``), what the blur costs;
 (d) ``gt_caster``: the ground-truth layers with our caster built from the ground-truth shadow
     labels (:class:`~mvintrinsic.relight.Relighter` with its defaults: the paper's parameters,
-    every view's votes, each view's own caster, proxy completion, the dropped clusters brought
-    into light);
+    every view's votes, each view's own caster, proxy completion, the dropped clusters' shadow
+    kept in the shadow layer);
 (e) ``pipeline``: the full pipeline, ``mvintrinsic.decompose(scene)`` then the Relighter.
 
 Rows (b) and (c) keep the true layers and are given their shadow layer (``dropped="none"``: the
@@ -42,8 +42,8 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
 * ``caster_study``: rows (d) and (e) under other :class:`~mvintrinsic.relight.RelightConfig`
   options, one changed at a time from the default: the merged caster, the paper's checks
   (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
-  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, the dropped clusters'
-  shadow kept in the shadow layer (``dropped="static"``) or moved like every pixel (``"none"``), with the pixels the proxy does not explain relit like the
+  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, the dropped clusters
+  brought into light (``dropped="light"``, the paper) or moved like every pixel (``"none"``), with the pixels the proxy does not explain relit like the
   others (``consistency=None``, the paper), each view's new shadow alone (``fusion=None``, the
   paper) and fused over every view that sees a point (``fusion="all"``); per row also the
   ``agreement_interior`` at each relit sun;
@@ -464,7 +464,7 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 "default, min_proxy_hits 0": relight_config(min_proxy_hits=0.0),
                 "default, min_cluster 20": relight_config(min_cluster=20),
                 "default, no blur": relight_config(blur=0.0),
-                "default, dropped clusters' shadow in the shadow layer (dropped static)": relight_config(dropped="static"),
+                "default, dropped clusters brought into light (dropped light, the paper)": relight_config(dropped="light"),
                 "default, dropped clusters moved like every pixel (dropped none)": relight_config(dropped="none"),
                 "default, unexplained pixels moved too (consistency None)": relight_config(consistency=None),
                 "default, each view alone (fusion None)": relight_config(fusion=None),

@@ -156,13 +156,13 @@ def test_the_samples_follow_the_counting_rule(world, min_views, share):
 
 def test_the_lost_poles_shadow_moves_with_the_sun(world):
     true, scene, decomposition, truth = world
-    paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0))
+    paper = Relighter(decomposition, scene, config=RelightConfig(blur=0.0, dropped="light"))
     # The cluster rule of the paper's 30%: half of the pole's shadow rays find it (previous test).
     photo = Relighter(decomposition, scene, config=RelightConfig(blur=0.0, lost_occluders=OccupancyConfig(min_hits=0.3)))
     points, normals, ground = truth["v0"]
     captured = exact_shadow(true, points, normals, ground, CAPTURE)
     moved = exact_shadow(true, points, normals, ground, MOVED)
-    # The paper drops the cluster (no ray hits the proxy): the shadow stays in the reflectance.
+    # The paper drops the cluster (no ray hits the proxy): with dropped="light" the shadow stays in the reflectance.
     assert paper.casters["v0"].dropped[captured].all()
     assert (paper.visibility_at(MOVED)["v0"][ground] > 0.5).all()
     # The views place the pole: the cluster is kept and the shadow moves as the true one does.

@@ -662,7 +662,7 @@ def box_relit(scene):
 
 
 def test_relight_config_checks_the_new_fields():
-    assert RelightConfig().sky == "paper" and RelightConfig().dropped == "light"
+    assert RelightConfig().sky == "paper" and RelightConfig().dropped == "static"
     with pytest.raises(ValueError, match="sky.*'model', 'paper'"):
         RelightConfig(sky="hosek")
     with pytest.raises(ValueError, match="turbidity"):
@@ -881,7 +881,7 @@ def test_the_caster_from_the_labels_alone_leaves_out_the_soft_pixels(scene):
     exact = scene.ground & scene.exact_shadow(moved)
     scores = {}
     for mode in ("paper", "labels"):
-        relighter = Relighter(decomposition, halo_scene, config=RelightConfig(caster_pixels=mode))
+        relighter = Relighter(decomposition, halo_scene, config=RelightConfig(caster_pixels=mode, dropped="light"))
         caster = relighter.casters["box"]
         if mode == "paper":
             assert caster.shadow[halo].mean() > 0.9  # the halo lifted with the shadow it touches

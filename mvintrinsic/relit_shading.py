@@ -454,6 +454,9 @@ class _NewSun:
         self.reflectance, self.fill_reflectance = reflectance, fill_reflectance
         self.sky_shading, self.indirect_shading = sky_shading, indirect_shading
         self.radiance, self.known, self.sky_lookup = radiance, known, sky_lookup
+        # Each new sun touches these pixels alone: their flat indices and capture v_sun, gathered once.
+        self._static = None if static is None else _gathered(static, capture)
+        self._unexplained = None if unexplained is None else _gathered(unexplained, capture)
 
     def visibility(self, direction: np.ndarray, shadow_caster: ShadowCaster, tracer: Tracer) -> np.ndarray:
         """``v'`` (H, W) float32 at the unit sun ``direction`` (:meth:`~mvintrinsic.relight.Relighter.visibility_at`)."""
@@ -461,10 +464,14 @@ class _NewSun:
                                                blocked=self.blocked, min_distance=self.min_distance, facing=None,
                                                config=self.config, batch=self.batch, belief=self.belief,
                                                full=self.full)
-        if self.static is not None:  # the shadow of a dropped cluster stays (RelightConfig.dropped)
-            visibility[self.static] *= self.capture[self.static]
-        if self.unexplained is not None:
-            np.copyto(visibility, self.capture, where=self.unexplained)
+        visibility = np.ascontiguousarray(visibility)  # (already is: then the flat view writes into it)
+        flat = visibility.reshape(-1)
+        if self._static is not None:  # the shadow of a dropped cluster stays (RelightConfig.dropped)
+            index, capture = self._static
+            flat[index] *= capture
+        if self._unexplained is not None:
+            index, capture = self._unexplained
+            flat[index] = capture
         return visibility
 
     def cosine(self, direction: np.ndarray) -> np.ndarray:
@@ -500,6 +507,12 @@ class _NewSun:
         else:
             image *= self.reflectance
         return image
+
+
+def _gathered(mask: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The flat indices of ``mask`` (H, W) and ``values`` (H, W) there."""
+    index = np.flatnonzero(mask)
+    return index, np.asarray(values).reshape(-1)[index]
 
 
 def _build_task(caster: _Rebuilt, tracer: _Rebuilt) -> None:

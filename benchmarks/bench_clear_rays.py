@@ -78,6 +78,11 @@ def label_scores(labels: dict, truth: dict) -> dict:
             "precision": float(tp / max(tp + fp, 1)), "recall": float(tp / max(tp + fn, 1))}
 
 
+#: The relighters (dropped "light": the default of the committed runs, so that --merge mixes like with like).
+RELIGHT_CONFIGS = {"relight": RelightConfig(lost_occluders=None, dropped="light"),
+                   "relight_lost_occluders": RelightConfig(lost_occluders=OccupancyConfig(), dropped="light")}
+
+
 def run_scene(folder: Path) -> dict:
     """Both variants of one scene (module docstring)."""
     scene = load_scene(folder)
@@ -87,7 +92,7 @@ def run_scene(folder: Path) -> dict:
     sky = {s: truth[s].sky_mask for s in scene.stems}
     inputs = {v.stem: v.image for v in scene.views}
     base = {tag: mean_psnr(inputs, images, sky)["mean"] for tag, (_, images, _) in tags.items()}
-    relight_configs = {"relight": RelightConfig(lost_occluders=None), "relight_lost_occluders": RelightConfig(lost_occluders=OccupancyConfig())}
+    relight_configs = RELIGHT_CONFIGS
     out = {"size": list(scene.views[0].shape[::-1]), "views": len(scene.views)}
     for name in VARIANTS:
         result = decompose(scene, config=variant_config(name), tracer=tracer)
@@ -122,7 +127,9 @@ def main(argv: list[str] | None = None) -> int:
     scenes.update({name: run_scene(folder) for name, folder in folders.items()})
     if args.out is not None:
         write_json(args.out, {"benchmark": "bench_clear_rays", "version": mvintrinsic.__version__,
-                              "config": dataclasses.asdict(Config().multiview.clear_rays), "scenes": scenes})
+                              "config": dataclasses.asdict(Config().multiview.clear_rays),
+                              "relight_configs": {k: dataclasses.asdict(c) for k, c in RELIGHT_CONFIGS.items()},
+                              "scenes": scenes})
     return 0
 
 

@@ -29,6 +29,7 @@ shadow clusters (``RelightConfig.support_radius``, 2026-11-29), which add pixels
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -46,9 +47,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_relight import AGREEMENT_POINTS, mean_psnr, relit_agreement, relit_tags, shadow_layer  # noqa: E402
 from bench_step4 import chosen_scene_folders, scene_study_parser  # noqa: E402
 
-ROWS = {"default": RelightConfig(lost_occluders=None, support_radius=0),
-        "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig(), support_radius=0),
-        "silhouette_1": RelightConfig(lost_occluders=OccupancyConfig(silhouette=1), support_radius=0)}
+# Pinned to the relighter of the committed runs (support_radius 0, dropped "light": the defaults then).
+ROWS = {"default": RelightConfig(lost_occluders=None, support_radius=0, dropped="light"),
+        "silhouette_0": RelightConfig(lost_occluders=OccupancyConfig(), support_radius=0, dropped="light"),
+        "silhouette_1": RelightConfig(lost_occluders=OccupancyConfig(silhouette=1), support_radius=0, dropped="light")}
 
 
 def run_scene(folder: Path) -> dict:
@@ -87,7 +89,9 @@ def main(argv: list[str] | None = None) -> int:
     scenes = {name: run_scene(folder) for name, folder in chosen_scene_folders(parser, args).items()}
     if args.out is not None:
         write_json(args.out, {"benchmark": "bench_occupancy_silhouette", "version": mvintrinsic.__version__,
-                              "psnr": "relit PSNR minus the input's, dB (docs/metrics.md)", "scenes": scenes})
+                              "psnr": "relit PSNR minus the input's, dB (docs/metrics.md)",
+                              "relight_configs": {name: dataclasses.asdict(config) for name, config in ROWS.items()},
+                              "scenes": scenes})
     return 0
 
 

@@ -55,7 +55,8 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
 ``--relight-config '{"support_radius": 10}'`` (a JSON object of
 :class:`~mvintrinsic.relight.RelightConfig` keywords) changes every relighter the run builds, rows
 and studies alike, from the package's defaults (the report's ``config`` records the result): how a
-run with an option is reproduced.
+run with an option is reproduced. A keyword a row or study sets itself (e.g. ``--timing``'s
+``lost_occluders``, a ``caster_study`` variant's option) wins over the override.
 
 ``--sky-pixels`` only compares the colours :attr:`~mvintrinsic.relight.RelightConfig.sky_pixels` gives
 the sky pixels, by :func:`sky_psnr` (:func:`sky_pixels_scene`).
@@ -199,9 +200,12 @@ def _parse_overrides(text: str | None) -> dict:
     if not isinstance(options, dict) or set(options) - fields:
         raise SystemExit(f"--relight-config: expected an object of RelightConfig fields ({', '.join(sorted(fields))}), "
                          f"got {text!r}")
-    if isinstance(options.get("lost_occluders"), dict):
-        options["lost_occluders"] = OccupancyConfig(**options["lost_occluders"])
-    RelightConfig(**options)  # validated here, before any scene is read
+    try:
+        if isinstance(options.get("lost_occluders"), dict):
+            options["lost_occluders"] = OccupancyConfig(**options["lost_occluders"])
+        RelightConfig(**options)  # validated here, before any scene is read
+    except (TypeError, ValueError) as error:
+        raise SystemExit(f"--relight-config: {error}") from None
     return options
 
 
@@ -557,7 +561,7 @@ def stride_scene(folder: Path, strides: tuple[int, ...] = (2, 3)) -> dict:
     scene = load_scene(folder)
     stems = scene.stems
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
-    relighter = Relighter(ground_truth, scene, tracer=Tracer(scene.proxy))
+    relighter = Relighter(ground_truth, scene, tracer=Tracer(scene.proxy), config=relight_config())
     tags = relit_tags(folder, stems)
     sky_mask = None
     if tags:

@@ -101,7 +101,7 @@ class OccupancyConfig:
         Weight of the hypothesis that a cluster kept only thanks to these distances (*rescued*:
         the paper's rule drops it) is a lost occluder's shadow; in [0, 1]. At its pixels the
         relighter renders ``belief`` times the moved shadow plus ``1 - belief`` times the paper's
-        image (the cluster dropped: brought into light, its captured darkness kept): the
+        image (the cluster dropped, as :attr:`RelightConfig.dropped` says): the
         expected image over the two hypotheses (:func:`blend_rescued`). With the pipeline's
         labels 52-72% of the rescued pixels were shadowed at capture (street_s0, exploratory), and
         even with the true labels the new shadow of a crown's dappled light is not where a sheet

@@ -232,8 +232,8 @@ class Relighter:
     """Relight every view of a decomposition under new suns (paper Sec. 8).
 
     Built once per decomposition: per view the receiver points and normals, the shadow pixels and
-    the caster (:func:`build_caster` at the capture sun, lit pixels voting), the in-shadow
-    reflectance fix of the dropped clusters; then one caster merged over all views
+    the caster (:func:`build_caster` at the capture sun, lit pixels voting), the dropped clusters'
+    handling (``config.dropped``); then one caster merged over all views
     (:func:`merge_casters`) and its Embree structure (:class:`ShadowCaster`). Each
     :meth:`render` then moves the shadows (caster, proxy completion, blur) and adjusts the shading
     (module docstring, "Adjusting shading"):

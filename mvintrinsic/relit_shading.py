@@ -446,7 +446,9 @@ class _NewSun:
                  sky_lookup: _SphereLookup | None, unexplained: np.ndarray | None = None,
                  capture: np.ndarray | None = None, static: np.ndarray | None = None,
                  sky_pixels: _SkyPixels | None = None, belief: float = 1.0, full: np.ndarray | None = None) -> None:
-        self.unexplained, self.capture, self.static, self.sky_pixels = unexplained, capture, static, sky_pixels
+        if (static is not None or unexplained is not None) and capture is None:
+            raise ValueError("capture is needed with static or unexplained pixels")
+        self.sky_pixels = sky_pixels
         self.belief, self.full = belief, full
         self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
         self.config, self.batch = config, batch
@@ -510,8 +512,8 @@ class _NewSun:
 
 
 def _gathered(mask: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The flat indices of ``mask`` (H, W) and ``values`` (H, W) there."""
-    index = np.flatnonzero(mask)
+    """The flat indices of ``mask`` (H, W) (int32: fewer than 2**31 pixels) and ``values`` (H, W) there."""
+    index = np.flatnonzero(mask).astype(np.int32)
     return index, np.asarray(values).reshape(-1)[index]
 
 

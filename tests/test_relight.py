@@ -925,7 +925,7 @@ def test_relighting_at_the_capture_sun_with_the_caster_reproduces_the_input(box_
     # Measured: 0.983 of the pixels farther than 3 pixels from a shadow edge (the 1-pixel blur), the
     # rest where the caster's shadow misses the box's attached shadow (0.891 of all pixels).
     assert close[~edges].mean() > 0.97
-    # The dropped false shadow keeps the input's colour (its reflectance took it: RelightConfig.dropped).
+    # The dropped false shadow keeps the input's colour (it stays in the shadow layer: RelightConfig.dropped).
     dropped = relighter.casters["box"].dropped
     np.testing.assert_allclose(out[dropped], image[dropped], rtol=1e-4)
 
@@ -945,7 +945,7 @@ def test_the_shadow_moves_the_right_way_through_relight(scene, box_relit):
         dark_value = layers.reflectance * (SKY + INDIRECT)
         darkness = ((relit - dark_value) / (lit_value - dark_value)).mean(axis=-1)
     ground = scene.ground.copy()
-    ground[FALSE_SHADOW] = False  # brought into light with a darker reflectance (tested above)
+    ground[FALSE_SHADOW] = False  # the dropped false shadow stays where it was (tested above)
     ours = ground & (darkness < 0.5)
     exact = ground & scene.exact_shadow(direction)
     assert iou(ours, exact) >= IOU_RELIT

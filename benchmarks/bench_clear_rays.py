@@ -92,7 +92,6 @@ def run_scene(folder: Path) -> dict:
     sky = {s: truth[s].sky_mask for s in scene.stems}
     inputs = {v.stem: v.image for v in scene.views}
     base = {tag: mean_psnr(inputs, images, sky)["mean"] for tag, (_, images, _) in tags.items()}
-    relight_configs = RELIGHT_CONFIGS
     out = {"size": list(scene.views[0].shape[::-1]), "views": len(scene.views)}
     for name in VARIANTS:
         result = decompose(scene, config=variant_config(name), tracer=tracer)
@@ -103,7 +102,7 @@ def run_scene(folder: Path) -> dict:
                  **label_scores({s: layer.shadow_labels for s, layer in result.layers.items()}, truth),
                  "seconds_per_view": {key: result.timings[key] / len(scene.views)
                                       for key in ("shadow_labels", "shadow_labels.clear_rays") if key in result.timings}}
-        for row, config in relight_configs.items():
+        for row, config in RELIGHT_CONFIGS.items():
             if tags:
                 relighter = Relighter(result, scene, config=config, tracer=tracer)
                 entry[row] = {tag: mean_psnr(relighter.render(direction), images, sky)["mean"] - base[tag]
@@ -111,7 +110,7 @@ def run_scene(folder: Path) -> dict:
         out[name] = entry
         print(f"{folder.name} {name}: BER {entry['ber']:.4f} FPR {entry['fpr']:.4f} FNR {entry['fnr']:.4f} "
               f"LMSE R {entry['lmse_reflectance']:.4f} S {entry['lmse_shading']:.4f} "
-              + " ".join(f"{row} {tag} {v:+.2f}" for row in relight_configs for tag, v in entry.get(row, {}).items()),
+              + " ".join(f"{row} {tag} {v:+.2f}" for row in RELIGHT_CONFIGS for tag, v in entry.get(row, {}).items()),
               flush=True)
     return out
 

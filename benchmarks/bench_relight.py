@@ -1396,7 +1396,7 @@ def main(argv: list[str] | None = None) -> int:
     # (--lost-occluders or --timed-occluders occupancy: relight_timing_lost_occluders.json), or the default relighter
     # (--timed-occluders default, silhouette 1: relight_timing_default.json).
     timed = relight_config(lost_occluders=TIMED_OCCLUDERS[args.timed_occluders or
-                                                         ("occupancy" if args.lost_occluders else "none")])
+                                                          ("occupancy" if args.lost_occluders else "none")])
     studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),

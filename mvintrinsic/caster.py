@@ -243,8 +243,8 @@ class RelightConfig:
         Step 3's labels join true shadows with unsupported ones into clusters the rule drops whole); >= 0, 0: the
         paper's rule alone (default). With ``lost_occluders``, the parts and their sheets are the expected image over
         the shadow and the paper's dropping (``belief``). Beyond the paper; 10 gains 0.23 dB on row (d) and 0.39 on
-        row (e) (five 480x360 scenes) but each new sun takes 0.095-0.113 s per view at 1000x750, over the 0.1 s
-        budget: an option (``docs/relight.md``, "Supported parts of the shadow clusters").
+        row (e) (five 480x360 scenes) but each new sun takes 0.095-0.113 s per view at 1000x750 (0.093-0.109 at
+        ``ray_stride=3``), over the 0.1 s budget: an option (``docs/relight.md``, "Supported parts of the shadow clusters").
     """
 
     tau_s: float = TAU_S

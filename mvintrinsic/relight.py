@@ -38,9 +38,9 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
 * dropped shadow clusters (too small or unsupported by the proxy, :func:`build_caster`; their
   occluder is unknown): the paper brings them "in light using the v_sun layer" (``dropped="light"``:
   ``v_sun`` 1, reflectance ``I / (S_sun + S_sky + S_ind)``); ``"static"`` (default, beyond the
-  paper) keeps the shadow in the shadow layer, ``v' = v_sun v'_caster`` (with today's other defaults
-  the cross-view agreement at least 0.95 at 20 of 22 scene-suns instead of 16 and 13, rows (d) and
-  (e) +0.12 and +0.13 dB on average: ``docs/relight.md``); with
+  paper) keeps the shadow in the shadow layer, ``v' = v_sun v'_caster`` (with the other defaults of
+  2026-11-29 the cross-view agreement at least 0.95 at 20 of 22 scene-suns instead of 16 and 13, rows
+  (d) and (e) +0.12 and +0.13 dB on average: ``docs/relight.md``); with
   :attr:`RelightConfig.lost_occluders` the photographs may place their occluder
   (:mod:`.photo_occupancy`), and the pixels of the clusters kept only thanks to it mix the two
   images (:attr:`Relighter.rescued`, ``OccupancyConfig.belief``);

@@ -570,8 +570,9 @@ class Relighter:
             lacks a view or has the wrong shape or range.
         """
         out = {}
-        for stem, (v_new, s_sun, sky, indirect) in self._relit(sun, visibility)[0].items():
+        for stem, (v_new, cosine, sky, indirect) in self._relit(sun, visibility)[0].items():
             layers = self.decomposition.layers[stem]
+            s_sun = self._new_sun[stem].sun_shading(cosine)
             labels = np.where(v_new >= 0.5, SHADOW_LABELS["lit"], SHADOW_LABELS["shadow"]).astype(np.uint8)
             labels[~self._known[stem]] = SHADOW_LABELS["undecided"]
             out[stem] = IntrinsicLayers(
@@ -660,9 +661,9 @@ class Relighter:
 
     def _relit(self, sun: object, visibility: Mapping[str, np.ndarray] | None
                ) -> tuple[dict[str, tuple[np.ndarray, np.ndarray, np.ndarray, float]], tuple[str, np.ndarray], float]:
-        """Per view ``(v', S_sun', S_sky' / S_sky, S_ind' / S_ind)``, the core of :meth:`layers`: (H, W, 3)
-        float32; sky factor (3,) float32 (``sky="paper"``) or (H, W, 3) float64 (``"model"``); scalar. And the
-        environment's change (:meth:`_environment`) and ``S_ind' / S_ind``."""
+        """Per view ``(v', max(0, n . d'), S_sky' / S_sky, S_ind' / S_ind)``, the core of :meth:`layers` and
+        :meth:`render`: (H, W) float32 twice; sky factor (3,) float32 (``sky="paper"``) or (H, W, 3) (``"model"``);
+        scalar. And the environment's change (:meth:`_environment`) and ``S_ind' / S_ind``."""
         direction = as_sun_direction(sun, up=self.up)
         new_vis = self.visibility_at(direction) if visibility is None else self._check_visibility(visibility)
         d32 = direction.astype(np.float32)
@@ -671,9 +672,8 @@ class Relighter:
         if indirect_factor is None:
             irradiance = self._per_view(lambda s: self._new_sun[s].irradiance(new_cosine[s], new_vis[s]))
             indirect_factor = self._indirect_factor(sum(irradiance[s] for s in self.stems))
-        return self._per_view(lambda s: (new_vis[s], self._new_sun[s].sun_shading(new_cosine[s]),
-                                         self._new_sun[s].sky_factor(environment), indirect_factor)
-                              ), environment, indirect_factor
+        return self._per_view(lambda s: (new_vis[s], new_cosine[s], self._new_sun[s].sky_factor(environment),
+                                         indirect_factor)), environment, indirect_factor
 
     def render(self, sun: object, *, visibility: Mapping[str, np.ndarray] | None = None,
                fill: str = "input") -> dict[str, np.ndarray]:

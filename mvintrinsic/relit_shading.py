@@ -28,6 +28,7 @@ import math
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 from ._validation import as_unit_vector, is_real
@@ -89,6 +90,10 @@ def _sky_irradiance_grid(sun: np.ndarray, turbidity: float, up: np.ndarray) -> n
     cosine = np.maximum(normals.astype(np.float32) @ directions.T.astype(np.float32), 0.0)
     return (cosine.astype(np.float64) @ weighted).reshape(NORMAL_GRID_HEIGHT, 2 * NORMAL_GRID_HEIGHT, 3)
 
+
+#: Rows of the bands in which :meth:`_NewSun.image` composes a relit image (16-128 time alike at 1000x750:
+#: 8.8-9.3 ms per view against 25 ms for whole-image passes, one core).
+COMPOSE_ROWS = 64
 
 #: Normals whose sky irradiance at the capture sun is below this fraction of the largest (normals
 #: that see at most a sliver of sky at the horizon, whose S_sky is about 0) keep their S_sky: a
@@ -306,7 +311,15 @@ class _SkyPixels:
         return (self._radiance(new) / self.radiance).astype(np.float32)
 
     def recolour(self, image: np.ndarray, new_sun: np.ndarray) -> None:
-        """Multiply the sky pixels of ``image`` ((H, W, 3) float32, in place) by their factors."""
+        """Multiply the sky pixels of ``image`` ((H, W, 3) float32, in place) by their factors; nothing to do
+        when every factor is 1 in float32 (``"paper"`` with the elevation unchanged: ``g ** w`` lies between 1
+        and ``g``, which rounds to 1; ``"model"`` at the capture sun)."""
+        if self.how == "paper":
+            gain, _ = paper_environment_factors(self.old, _check_sun(new_sun, self.up), up=self.up)
+            if np.all(gain.astype(np.float32) == 1.0):
+                return
+        elif np.array_equal(self.old, _check_sun(new_sun, self.up)):
+            return
         image.reshape(-1, 3)[self.index] *= self.factors(new_sun)
 
 
@@ -452,10 +465,16 @@ class _NewSun:
         self.belief, self.full = belief, full
         self.receivers, self.shape, self.blocked, self.min_distance = receivers, shape, blocked, min_distance
         self.config, self.batch = config, batch
-        self.normals, self.base, self.floor, self.fill = normals, base, floor, fill
-        self.reflectance, self.fill_reflectance = reflectance, fill_reflectance
-        self.sky_shading, self.indirect_shading = sky_shading, indirect_shading
-        self.radiance, self.known, self.sky_lookup = radiance, known, sky_lookup
+        self.normals, self.radiance, self.known, self.sky_lookup = normals, radiance, known, sky_lookup
+        # Channel planes (3, H, W) of what every new sun's image reads (:meth:`image`): long inner loops in
+        # cache-sized bands of rows instead of (H, W, 3) passes broadcast over 3 channels, 2.7x faster at 1000x750.
+        self._planes = {name: _planar(array) for name, array in (
+            ("base", base), ("floor", floor), ("sky", sky_shading), ("indirect", indirect_shading),
+            ("reflectance", fill_reflectance), ("fill", fill))}
+        # fill="zero" multiplies by the reflectance itself; it equals fill_reflectance unless a pixel without an
+        # estimate has a reflectance other than 0 (the layers hold 0 there).
+        differs = not np.array_equal(np.asarray(reflectance), np.asarray(fill_reflectance))
+        self._zero_reflectance = _planar(reflectance) if differs else None
         # Each new sun touches these pixels alone: their flat indices and capture v_sun, gathered once.
         self._static = None if static is None else _gathered(static, capture)
         self._unexplained = None if unexplained is None else _gathered(unexplained, capture)
@@ -491,24 +510,64 @@ class _NewSun:
 
     def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
         """``S_sun'`` (H, W, 3) float32 from ``max(0, n . d')``."""
-        return _relit_sun_shading(cosine, self.radiance, self.base, self.floor)
+        planes = self._planes
+        return _relit_sun_shading(cosine, self.radiance, _interleaved(planes["base"]), _interleaved(planes["floor"]))
 
-    def image(self, visibility: np.ndarray, sun_shading: np.ndarray, sky: np.ndarray, indirect: float,
+    def image(self, visibility: np.ndarray, cosine: np.ndarray, sky: np.ndarray, indirect: float,
               fill: str, direction: np.ndarray | None = None) -> np.ndarray:
-        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32, the sky pixels of the fill recoloured
-        for the sun ``direction`` (:attr:`RelightConfig.sky_pixels`); ``sun_shading`` is overwritten."""
-        image = sun_shading
-        image *= visibility[..., None]
-        image += self.sky_shading * sky
-        image += self.indirect_shading * np.float32(indirect)
-        if fill == "input":  # the reflectance of the pixels without an estimate is 0 there
-            image *= self.fill_reflectance
-            image += self.fill
-            if self.sky_pixels is not None and direction is not None:
-                self.sky_pixels.recolour(image, direction)
-        else:
-            image *= self.reflectance
+        """``R (v' S_sun' + S_sky' + S_ind')`` (H, W, 3) float32 from ``v'`` and ``max(0, n . d')`` ((H, W)
+        float32), ``S_sky' / S_sky`` (:meth:`sky_factor`) and ``S_ind' / S_ind``; with ``fill="input"`` the
+        pixels without an estimate show the input, its sky pixels recoloured for the sun ``direction``
+        (:attr:`RelightConfig.sky_pixels`).
+
+        The operations of :func:`_relit_sun_shading` and Eq. (1), in their order (so the same float32
+        values), on one band of :data:`COMPOSE_ROWS` rows and one channel plane at a time, the bands
+        interleaved into the image by OpenCV.
+        """
+        planes = self._planes
+        reflectance = planes["reflectance"] if fill == "input" or self._zero_reflectance is None \
+            else self._zero_reflectance
+        h, w = self.shape
+        image = np.empty((h, w, 3), np.float32)
+        per_pixel = np.ndim(sky) == 3  # sky="model": a factor per pixel, else (3,)
+        sky = np.asarray(sky) if per_pixel else np.asarray(sky, np.float32)  # the products as before, in its dtype
+        indirect = np.float32(indirect)
+        rows = min(COMPOSE_ROWS, h)
+        band = np.empty((3, rows, w), np.float32)
+        term = np.empty((rows, w), np.float32)
+        for top in range(0, h, rows):
+            bottom = min(h, top + rows)
+            n = bottom - top
+            t = term[:n]
+            for c in range(3):
+                out = band[c, :n]
+                np.multiply(cosine[top:bottom], self.radiance[c], out=out)  # S_sun' (_relit_sun_shading)
+                out += planes["base"][c, top:bottom]
+                np.maximum(out, planes["floor"][c, top:bottom], out=out)
+                out *= visibility[top:bottom]  # v' S_sun' + S_sky' + S_ind', Eq. (1)
+                np.multiply(planes["sky"][c, top:bottom], sky[top:bottom, :, c] if per_pixel else sky[c], out=t)
+                out += t
+                np.multiply(planes["indirect"][c, top:bottom], indirect, out=t)
+                out += t
+                out *= reflectance[c, top:bottom]  # 0 where the layers hold no estimate, so the fill adds to 0
+                if fill == "input":
+                    out += planes["fill"][c, top:bottom]
+            merged = cv2.merge([band[0, :n], band[1, :n], band[2, :n]], dst=image[top:bottom])
+            if not np.shares_memory(merged, image):  # OpenCV wrote elsewhere (it should not)
+                image[top:bottom] = merged
+        if fill == "input" and self.sky_pixels is not None and direction is not None:
+            self.sky_pixels.recolour(image, direction)
         return image
+
+
+def _planar(array: np.ndarray) -> np.ndarray:
+    """(H, W, 3) -> its channel planes (3, H, W), float32, contiguous."""
+    return np.ascontiguousarray(np.moveaxis(np.asarray(array, np.float32), -1, 0))
+
+
+def _interleaved(planes: np.ndarray) -> np.ndarray:
+    """(3, H, W) -> (H, W, 3) float32, contiguous."""
+    return np.ascontiguousarray(np.moveaxis(planes, 0, -1))
 
 
 def _gathered(mask: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -541,8 +600,7 @@ def _image_task(new_sun: _NewSun, terms: tuple[np.ndarray, np.ndarray], *, envir
                 indirect_factor: float, fill: str, direction: np.ndarray) -> np.ndarray:
     """A task: one view's relit image from its :func:`_new_sun_terms`."""
     visibility, cosine = terms
-    return new_sun.image(visibility, new_sun.sun_shading(cosine), new_sun.sky_factor(environment),
-                         indirect_factor, fill, direction)
+    return new_sun.image(visibility, cosine, new_sun.sky_factor(environment), indirect_factor, fill, direction)
 
 
 def _render_view(new_sun: _NewSun, caster: _Rebuilt, tracer: _Rebuilt, direction: np.ndarray,

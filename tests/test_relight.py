@@ -1195,3 +1195,51 @@ def test_a_single_view_explains_every_pixel_the_proxy_holds(box_relit):
     decomposition, box_scene = box_relit
     relighter = Relighter(decomposition, box_scene)
     assert not relighter.unexplained["box"].any()
+
+
+@pytest.mark.parametrize("height", [7, 64, 150])
+@pytest.mark.parametrize("per_pixel_sky", [False, True])
+@pytest.mark.parametrize("fill", ["input", "zero"])
+def test_the_banded_composition_is_eq_1_to_the_bit(height, per_pixel_sky, fill):
+    # _NewSun.image evaluates S_sun' and Eq. (1) on channel planes in bands of COMPOSE_ROWS rows: the same float32
+    # operations in the same order as the whole-image formula, whatever the height (7 < 64 < 150 rows, 150 not a
+    # multiple of the band).
+    from mvintrinsic.caster import RelightConfig
+    from mvintrinsic.relit_shading import COMPOSE_ROWS, _NewSun
+
+    assert COMPOSE_ROWS == 64
+    rng = np.random.default_rng(height)
+    w = 33
+    shape = (height, w)
+
+    def rgb(scale=1.0):
+        return (scale * rng.random((*shape, 3))).astype(np.float32)
+
+    known = rng.random(shape) > 0.2
+    reflectance = np.where(known[..., None], rgb(), np.float32(0.0))
+    base, floor = rgb() - np.float32(0.5), np.where(rng.random((*shape, 1)) > 0.5, rgb(0.1), -np.inf).astype(np.float32)
+    fill_image = np.where(known[..., None], np.float32(0.0), rgb(2.0))
+    sky, indirect, normals = rgb(), rgb(), rgb()
+    radiance = np.array([3.0, 2.5, 2.0], np.float32)
+    new_sun = _NewSun(receivers=np.zeros((height * w, 3)), shape=shape, blocked=np.zeros(1, bool), min_distance=0.0,
+                      config=RelightConfig(), batch=1024, normals=normals, base=base, floor=floor, fill=fill_image,
+                      reflectance=reflectance, fill_reflectance=reflectance, sky_shading=sky,
+                      indirect_shading=indirect, radiance=radiance, known=known, sky_lookup=None)
+    cosine = rng.random(shape).astype(np.float32)
+    visibility = rng.random(shape).astype(np.float32)
+    factor = rng.random((*shape, 3)) + 0.5 if per_pixel_sky else np.array([1.02, 1.0, 0.94], np.float32)
+    expected = cosine[..., None] * radiance
+    expected += base
+    expected = np.maximum(expected, floor)
+    expected *= visibility[..., None]
+    expected += sky * factor
+    expected += indirect * np.float32(0.8)
+    expected *= reflectance
+    if fill == "input":
+        expected += fill_image
+    image = new_sun.image(visibility, cosine, factor, 0.8, fill)
+    assert image.dtype == np.float32 and image.shape == (*shape, 3)
+    if per_pixel_sky:  # the product with a float64 factor is rounded to float32 before it is added
+        np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-6)
+    else:
+        np.testing.assert_array_equal(image, expected)

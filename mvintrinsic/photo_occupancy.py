@@ -426,8 +426,8 @@ def _seen(camera: Camera, lookup: tuple[np.ndarray, np.ndarray], points: np.ndar
     state, limit = lookup
     local = camera.world_to_camera(points)  # its norm: the distance to the camera centre
     front = np.flatnonzero(local[:, 2] > 0)
-    if camera._pinhole:  # normalized_to_pixels and in_image on 1D columns, the same numbers, about 2x faster
-        near = local if len(front) == len(local) else local[front]
+    near = local if len(front) == len(local) else local[front]
+    if camera._pinhole:  # Camera.normalized_to_pixels on 1D columns: the same numbers, without the (N, 2) arrays
         (fx, fy), (cx, cy) = camera.focal, camera.principal_point
         u = near[:, 0] / near[:, 2]
         u *= fx
@@ -435,18 +435,13 @@ def _seen(camera: Camera, lookup: tuple[np.ndarray, np.ndarray], points: np.ndar
         v = near[:, 1] / near[:, 2]
         v *= fy
         v += cy
-        inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
-        distance2 = np.einsum("ij,ij->i", near, near)[inside]
-        front = front[inside]
-        # u, v >= 0 inside the image: truncation is the floor
-        flat = v[inside].astype(np.int64) * camera.width + u[inside].astype(np.int64)
-        return front, np.where(distance2 < limit[flat], state[flat], 0)
-    pixels = camera.normalized_to_pixels(local[front, :2] / local[front, 2:])
-    inside = camera.in_image(pixels)
-    front, pixels = front[inside], pixels[inside]
-    flat = np.floor(pixels[:, 1]).astype(np.int64) * camera.width + np.floor(pixels[:, 0]).astype(np.int64)
-    near = local[front]
-    return front, np.where(np.einsum("ij,ij->i", near, near) < limit[flat], state[flat], 0)
+    else:
+        u, v = camera.normalized_to_pixels(near[:, :2] / near[:, 2:]).T
+    inside = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)  # Camera.in_image
+    distance2 = np.einsum("ij,ij->i", near, near)[inside]
+    front = front[inside]
+    flat = v[inside].astype(np.int64) * camera.width + u[inside].astype(np.int64)  # >= 0 inside: truncation floors
+    return front, np.where(distance2 < limit[flat], state[flat], 0)
 
 
 def shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray], depth: Mapping[str, np.ndarray], *,

@@ -288,6 +288,7 @@ class _SkyPixels:
         self.up = as_unit_vector(up, "up")
         self.old, self.index, self.how, self.turbidity = _check_sun(old_sun, self.up), index, how, turbidity
         directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+        self._count = len(directions)
         if how == "paper":
             self.weight = 1.0 - np.clip(directions @ self.up, 0.0, 1.0)
         else:  # below the horizon: the horizon's colour
@@ -302,25 +303,29 @@ class _SkyPixels:
 
     def factors(self, new_sun: np.ndarray) -> np.ndarray:
         """(N, 3) float32 factors at ``new_sun`` (:func:`sky_pixel_factors`)."""
+        factors = self._changed(new_sun)
+        return np.ones((self._count, 3), np.float32) if factors is None else factors
+
+    def _changed(self, new_sun: np.ndarray) -> np.ndarray | None:
+        """:meth:`factors`, or None when every factor is 1 in float32 (``"paper"`` with the elevation unchanged:
+        ``g ** w`` lies between 1 and ``g``, which rounds to 1; ``"model"`` at the capture sun)."""
         new = _check_sun(new_sun, self.up)
         if self.how == "paper":
             gain, _ = paper_environment_factors(self.old, new, up=self.up)
+            if np.all(gain.astype(np.float32) == 1.0):
+                return None
             return (gain[None, :] ** self.weight[:, None]).astype(np.float32)
         if np.array_equal(self.old, new):
-            return np.ones((len(self.directions), 3), np.float32)
+            return None
         return (self._radiance(new) / self.radiance).astype(np.float32)
 
     def recolour(self, image: np.ndarray, new_sun: np.ndarray) -> None:
-        """Multiply the sky pixels of ``image`` ((H, W, 3) float32, in place) by their factors; nothing to do
-        when every factor is 1 in float32 (``"paper"`` with the elevation unchanged: ``g ** w`` lies between 1
-        and ``g``, which rounds to 1; ``"model"`` at the capture sun)."""
-        if self.how == "paper":
-            gain, _ = paper_environment_factors(self.old, _check_sun(new_sun, self.up), up=self.up)
-            if np.all(gain.astype(np.float32) == 1.0):
-                return
-        elif np.array_equal(self.old, _check_sun(new_sun, self.up)):
+        """Multiply the sky pixels of ``image`` ((H, W, 3) float32, in place) by their factors (nothing to do where
+        every one is 1)."""
+        factors = self._changed(new_sun)
+        if factors is None:
             return
-        image.reshape(-1, 3)[self.index] *= self.factors(new_sun)
+        image.reshape(-1, 3)[self.index] *= factors
 
 
 # ---------------------------------------------------------------------------------------------
@@ -508,10 +513,19 @@ class _NewSun:
         """``S_sky' / S_sky``: the (3,) float32 gain (``"paper"``) or the sky-model ratio at each normal (H, W, 3)."""
         return _sky_factor(environment, self.sky_lookup)
 
+    def _sun_plane(self, out: np.ndarray, cosine: np.ndarray, channel: int, rows: slice) -> np.ndarray:
+        """``S_sun'`` of one channel on ``rows`` into ``out`` ((n, W) float32) from ``max(0, n . d')`` ((H, W)):
+        the operations of :func:`_relit_sun_shading`, in its order."""
+        np.multiply(cosine[rows], self.radiance[channel], out=out)
+        out += self._planes["base"][channel, rows]
+        return np.maximum(out, self._planes["floor"][channel, rows], out=out)
+
     def sun_shading(self, cosine: np.ndarray) -> np.ndarray:
         """``S_sun'`` (H, W, 3) float32 from ``max(0, n . d')``."""
-        planes = self._planes
-        return _relit_sun_shading(cosine, self.radiance, _interleaved(planes["base"]), _interleaved(planes["floor"]))
+        planes = np.empty((3, *self.shape), np.float32)
+        for c in range(3):
+            self._sun_plane(planes[c], cosine, c, slice(None))
+        return _interleaved(planes)
 
     def image(self, visibility: np.ndarray, cosine: np.ndarray, sky: np.ndarray, indirect: float,
               fill: str, direction: np.ndarray | None = None) -> np.ndarray:
@@ -540,10 +554,7 @@ class _NewSun:
             n = bottom - top
             t = term[:n]
             for c in range(3):
-                out = band[c, :n]
-                np.multiply(cosine[top:bottom], self.radiance[c], out=out)  # S_sun' (_relit_sun_shading)
-                out += planes["base"][c, top:bottom]
-                np.maximum(out, planes["floor"][c, top:bottom], out=out)
+                out = self._sun_plane(band[c, :n], cosine, c, slice(top, bottom))
                 out *= visibility[top:bottom]  # v' S_sun' + S_sky' + S_ind', Eq. (1)
                 np.multiply(planes["sky"][c, top:bottom], sky[top:bottom, :, c] if per_pixel else sky[c], out=t)
                 out += t

@@ -40,6 +40,7 @@ from mvintrinsic.relight import (
     sky_irradiance_ratio,
     sky_pixel_factors,
 )
+from mvintrinsic.relit_shading import COMPOSE_ROWS, _NewSun
 from mvintrinsic.results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from mvintrinsic.scene import Scene, Sun, View
 from mvintrinsic.shadow_caster import _shared_receivers, _strided
@@ -1204,9 +1205,6 @@ def test_the_banded_composition_is_eq_1_to_the_bit(height, per_pixel_sky, fill):
     # _NewSun.image evaluates S_sun' and Eq. (1) on channel planes in bands of COMPOSE_ROWS rows: the same float32
     # operations in the same order as the whole-image formula, whatever the height (7 < 64 < 150 rows, 150 not a
     # multiple of the band).
-    from mvintrinsic.caster import RelightConfig
-    from mvintrinsic.relit_shading import COMPOSE_ROWS, _NewSun
-
     assert COMPOSE_ROWS == 64
     rng = np.random.default_rng(height)
     w = 33

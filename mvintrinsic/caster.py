@@ -85,7 +85,7 @@ from ._validation import as_array, as_unit_vector, config_or_default, describe, 
 from .camera import Camera
 from .photo_occupancy import OccupancyConfig
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, Tracer, triangle_scene
+from .raytrace import DEFAULT_BATCH, Tracer, _ray_array, triangle_scene
 from .shadow_clusters import TAU_S, kept_clusters, shadow_pixels, supported_parts
 
 __all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "LOST_OCCLUDERS", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
@@ -445,15 +445,6 @@ def _check_rays(origins: object, sun_direction: object) -> tuple[np.ndarray, np.
             as_unit_vector(sun_direction, "sun_direction"))
 
 
-def _rays(origins: np.ndarray, direction: np.ndarray):
-    import open3d as o3d
-
-    rays = np.empty((len(origins), 6), dtype=np.float32)
-    rays[:, :3] = origins
-    rays[:, 3:] = direction
-    return o3d.core.Tensor(rays)
-
-
 # ---------------------------------------------------------------------------------------------
 # receiver
 # ---------------------------------------------------------------------------------------------
@@ -669,6 +660,8 @@ def build_caster(
 def _first_hit_counts(vertices: np.ndarray, triangles: np.ndarray, points: Sequence[np.ndarray],
                       sun: np.ndarray, offset: float, batch: int) -> np.ndarray:
     """How many rays ``p + offset d + s d`` (``p`` in every array of ``points``) first hit each triangle."""
+    import open3d as o3d
+
     counts = np.zeros(len(triangles), dtype=np.int64)
     if not len(triangles):
         return counts
@@ -676,7 +669,7 @@ def _first_hit_counts(vertices: np.ndarray, triangles: np.ndarray, points: Seque
     for array in points:
         for start in range(0, len(array), batch):
             origins = array[start:start + batch] + offset * sun
-            ids = scene.cast_rays(_rays(origins, sun))["primitive_ids"].numpy()
+            ids = scene.cast_rays(o3d.core.Tensor.from_numpy(_ray_array(origins, sun)))["primitive_ids"].numpy()
             ids = ids[ids != _INVALID_ID].astype(np.int64)
             counts += np.bincount(ids, minlength=len(triangles))
     return counts

@@ -686,10 +686,15 @@ def blend_rescued(moved: Mapping[str, np.ndarray], paper: Mapping[str, np.ndarra
         if stem in rescued:
             mask = as_array(rescued[stem], f"rescued[{stem!r}]", shape=image.shape[:2], dtype=bool)
             other = as_array(paper[stem], f"paper[{stem!r}]", shape=(int(mask.sum()), 3), dtype=np.float32)
-            _blend_into(image, mask, other, belief)
+            _blend_into(image, np.flatnonzero(mask), other, belief)
     return out
 
 
-def _blend_into(image: np.ndarray, mask: np.ndarray, paper: np.ndarray, belief: float) -> None:
-    """:func:`blend_rescued` of one view in place: (H, W, 3) float32 ``image``, (H, W) bool ``mask``, (N, 3) ``paper``."""
-    image[mask] = np.float32(belief) * image[mask] + np.float32(1.0 - belief) * paper
+def _blend_into(image: np.ndarray, pixels: np.ndarray, paper: np.ndarray, belief: float) -> None:
+    """:func:`blend_rescued` of one view in place: (H, W, 3) float32 C-contiguous ``image``, (N,) flat indices of
+    the rescued ``pixels`` in row-major order, (N, 3) ``paper``."""
+    flat = image.reshape(-1, 3)  # a view: the blend writes into the image
+    mixed = np.take(flat, pixels, axis=0)
+    mixed *= np.float32(belief)
+    mixed += np.float32(1.0 - belief) * paper
+    flat[pixels] = mixed

@@ -339,7 +339,19 @@ class Tracer:
             chunk = rays[:m]
             np.add(origins[start:start + m], shift * direction, out=chunk[:, :3])
             chunk[:, 3:] = direction
-            answer = self._scene.cast_rays(self._o3c.Tensor(chunk))
+            t[start:start + m], primitive[start:start + m] = self._first_primitive_rays(chunk, t_min=t_min, batch=m)
+        return t, primitive
+
+    def _first_primitive_rays(self, rays: np.ndarray, *, t_min: float = 0.0,
+                              batch: int = DEFAULT_BATCH) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`first_primitive` of Embree's rays as they are: ``rays`` (N, 6) float32, C-contiguous, each row
+        an origin and a direction (world frame), read without a copy; ``t`` counts ``t_min`` more."""
+        n = len(rays)
+        t = np.full(n, np.inf, dtype=np.float32)
+        primitive = np.full(n, -1, dtype=np.int64)
+        for start in range(0, n, batch):
+            m = min(batch, n - start)
+            answer = self._scene.cast_rays(self._o3c.Tensor.from_numpy(rays[start:start + m]))
             t_hit = answer["t_hit"].numpy()
             ok = np.isfinite(t_hit)
             t[start:start + m] = np.where(ok, t_hit + np.float32(t_min), np.inf)
@@ -351,6 +363,15 @@ class Tracer:
 
     def __repr__(self) -> str:
         return f"Tracer({self.proxy!r})"
+
+
+def _ray_array(origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """Embree's rays (N, 6) float32, C-contiguous: ``origins`` (N, 3) and the one ``direction`` (3,), each cast to
+    float32 as Embree takes them (``open3d.core.Tensor.from_numpy`` reads them without a copy)."""
+    rays = np.empty((len(origins), 6), dtype=np.float32)
+    rays[:, :3] = origins
+    rays[:, 3:] = direction
+    return rays
 
 
 def tangent_frames(normals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

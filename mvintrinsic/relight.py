@@ -463,6 +463,7 @@ class Relighter:
         start = time.perf_counter()  # lost_occluders' belief < 1 (beyond the paper): the paper's image there
         self.rescued = MappingProxyType({s: _read_only(m) for s, m in rescued.items() if m.any()})
         self._paper = {s: self._paper_pixels(s, m, cosine[s]) for s, m in self.rescued.items()}
+        self._rescued_pixels = {s: np.flatnonzero(m) for s, m in self.rescued.items()}
         if rescued:
             timings["rescued"] = time.perf_counter() - start
         self.timings = MappingProxyType(timings)
@@ -717,7 +718,7 @@ class Relighter:
         def image(s: str) -> np.ndarray:
             out = self._new_sun[s].image(*relit[s], fill, direction)
             if blend and s in self._paper:
-                _blend_into(out, self.rescued[s], self._paper[s](d32, environment, indirect_factor),
+                _blend_into(out, self._rescued_pixels[s], self._paper[s](d32, environment, indirect_factor),
                             self.config.lost_occluders.belief)
             return out
 

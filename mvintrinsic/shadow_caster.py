@@ -86,15 +86,15 @@ from collections.abc import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
-from scipy import ndimage, sparse
+from scipy import sparse
 
 from ._validation import as_array, as_unit_vector, config_or_default, describe, is_real
 from .camera import Camera
-from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array, _rays
+from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_sun, _check_tracer, _image_array
 from .envmap import horizontal_frame
 from .photo_occupancy import nearest_colour, shared_receivers, unexplained_pixels
 from .pixels import nearest_fill
-from .raytrace import DEFAULT_BATCH, RayHits, Tracer, triangle_scene, vertex_normals
+from .raytrace import DEFAULT_BATCH, RayHits, Tracer, _ray_array, triangle_scene, vertex_normals
 from .results import Decomposition
 from .scene import Scene, Sun, View
 
@@ -180,15 +180,16 @@ def _strided(shaded: Callable[[np.ndarray], np.ndarray], shape: tuple[int, int],
     xs = np.unique(np.r_[np.arange(0, w, stride), w - 1])
     corners = shaded((ys[:, None] * w + xs[None, :]).ravel()).reshape(len(ys), len(xs))
     # Cell (j, i) spans rows ys[j]..ys[j+1] and columns xs[i]..xs[i+1]; every pixel reads the
-    # cell below and right of its nearest grid row and column above and left.
+    # cell below and right of its nearest grid row and column above and left: the cells' rows and
+    # columns repeated, the last cell's to the image's edge.
     mixed = ((corners[:-1, :-1] != corners[1:, :-1]) | (corners[:-1, :-1] != corners[:-1, 1:])
              | (corners[:-1, :-1] != corners[1:, 1:]))
-    mixed = ndimage.binary_dilation(mixed, structure=np.ones((3, 3), dtype=bool))
-    row = np.minimum(np.searchsorted(ys, np.arange(h), side="right") - 1, len(ys) - 2)
-    col = np.minimum(np.searchsorted(xs, np.arange(w), side="right") - 1, len(xs) - 2)
-    out = corners[row[:, None], col[None, :]].copy()  # the top-left corner's state
+    mixed = cv2.dilate(mixed.view(np.uint8), np.ones((3, 3), np.uint8)).view(bool)  # the 8 neighbour cells
+    rows = np.diff(np.r_[ys[:-1], h])
+    cols = np.diff(np.r_[xs[:-1], w])
+    out = np.repeat(np.repeat(corners[:-1, :-1], rows, axis=0), cols, axis=1)  # the top-left corner's state
+    refine = np.repeat(np.repeat(mixed, rows, axis=0), cols, axis=1)
     out[np.ix_(ys, xs)] = corners
-    refine = mixed[row[:, None], col[None, :]]
     refine[np.ix_(ys, xs)] = False  # the corners are known
     index = np.flatnonzero(refine)
     out = out.ravel()
@@ -231,7 +232,7 @@ class ShadowCaster:
         sun_direction : (3,) array_like
             Unit direction toward the sun, world frame.
         """
-        return self._occluded(*_check_rays(origins, sun_direction), batch=batch)
+        return self._occluded(_ray_array(*_check_rays(origins, sun_direction)), batch=batch)
 
     def hit_distance(self, origins: np.ndarray, sun_direction: np.ndarray, *,
                      batch: int = DEFAULT_BATCH) -> np.ndarray:
@@ -247,28 +248,30 @@ class ShadowCaster:
         sun_direction : (3,) array_like
             Unit direction toward the sun, world frame.
         """
-        origins, sun = _check_rays(origins, sun_direction)
-        return self._query(origins, sun, np.inf, np.float32, lambda rays: self._scene.cast_rays(rays)["t_hit"], batch)
+        rays = _ray_array(*_check_rays(origins, sun_direction))
+        return self._query(rays, np.inf, np.float32, lambda tensor: self._scene.cast_rays(tensor)["t_hit"], batch)
 
-    def _occluded(self, origins: np.ndarray, sun: np.ndarray, *, batch: int) -> np.ndarray:
-        """:meth:`occluded` on checked inputs (the per-sun hot path: no copy, no finiteness scan)."""
-        return self._query(origins, sun, False, bool, lambda rays: self._scene.test_occlusions(rays), batch)
+    def _occluded(self, rays: np.ndarray, *, batch: int) -> np.ndarray:
+        """:meth:`occluded` of :func:`_ray_array`'s rays (the per-sun hot path: no copy, no finiteness scan)."""
+        return self._query(rays, False, bool, lambda tensor: self._scene.test_occlusions(tensor), batch)
 
-    def _query(self, origins: np.ndarray, sun: np.ndarray, empty, dtype, query, batch: int, *,
-               structure=True) -> np.ndarray:
-        """``query`` (an Embree call on a ray tensor) over ``origins`` in batches; ``empty`` when the structure it
-        asks (``structure``; True: the whole caster's) does not exist."""
-        out = np.full(len(origins), empty, dtype=dtype)
+    def _query(self, rays: np.ndarray, empty, dtype, query, batch: int, *, structure=True) -> np.ndarray:
+        """``query`` (an Embree call on a ray tensor) over ``rays`` ((N, 6) float32, :func:`_ray_array`) in batches,
+        each handed to Embree without a copy; ``empty`` when the structure it asks (``structure``; True: the whole
+        caster's) does not exist."""
+        import open3d as o3d
+
+        out = np.full(len(rays), empty, dtype=dtype)
         if (self._scene if structure is True else structure) is None:
             return out
-        for start in range(0, len(origins), batch):
+        for start in range(0, len(rays), batch):
             sl = slice(start, start + batch)
-            out[sl] = query(_rays(origins[sl], sun)).numpy()
+            out[sl] = query(o3d.core.Tensor.from_numpy(rays[sl])).numpy()
         return out
 
-    def _blocks(self, structure, origins: np.ndarray, sun: np.ndarray, batch: int) -> np.ndarray:
+    def _blocks(self, structure, rays: np.ndarray, batch: int) -> np.ndarray:
         """Occlusion of each ray by the certain or the uncertain triangles' structure (None: none), (N,) bool."""
-        return self._query(origins, sun, False, bool, lambda rays: structure.test_occlusions(rays), batch,
+        return self._query(rays, False, bool, lambda tensor: structure.test_occlusions(tensor), batch,
                            structure=structure)
 
     def sun_visibility(
@@ -394,23 +397,25 @@ class ShadowCaster:
             blocked, blocked_certain = blocked
 
         def shaded(index: np.ndarray) -> np.ndarray:
-            # Offset toward the sun in float64, then float32 as Embree takes them.
-            origins = (points[index] + offset).astype(np.float32)
+            # Offset toward the sun in float64, then float32 as Embree takes them: one ray array for every query.
+            origins = np.take(points, index, axis=0)
+            origins += offset
+            rays = _ray_array(origins, sun)
             paper = None  # with belief < 1: the shadow without the uncertain triangles (the paper's hypothesis)
             if mixed:
-                paper = self._blocks(self._certain, origins, sun, batch)
+                paper = self._blocks(self._certain, rays, batch)
                 through = np.flatnonzero(~paper)  # the uncertain triangles may block these alone
                 shade = paper.copy()
-                shade[through] = self._blocks(self._uncertain, origins[through], sun, batch)
+                shade[through] = self._blocks(self._uncertain, rays[through], batch)
                 asked = through  # the proxy's completion under both hypotheses
             else:
-                shade = self._occluded(origins, sun, batch=batch)
+                shade = self._occluded(rays, batch=batch)
                 asked = np.flatnonzero(~shade)
             if proxy_tracer is not None:
                 # Only rays the caster let through can change: the proxy's rays go to those alone.
                 # A proxy hit completes the shadow unless the caster stands for its primitive, a
                 # lit pixel contradicted it or it lies nearer than ``min_distance`` (``blocked``).
-                t, primitive = proxy_tracer.first_primitive(origins[asked], sun, batch=batch)
+                t, primitive = proxy_tracer._first_primitive_rays(rays[asked], batch=batch)
                 # t counts from the offset origin.
                 far = t + np.float32(config.ray_offset) >= min_distance
                 if mixed:

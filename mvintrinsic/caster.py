@@ -266,7 +266,7 @@ class RelightConfig:
     consistency: float | None = 0.3
     fusion: str | None = "capture"
     lost_occluders: OccupancyConfig | None = LOST_OCCLUDERS
-    support_radius: int = 0
+    support_radius: int = 10
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),

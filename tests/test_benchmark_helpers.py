@@ -210,9 +210,9 @@ def test_relight_config_overrides_reach_every_relighter_and_are_checked():
         with pytest.raises((SystemExit, ValueError), match="relight-config|support_radius"):
             bench_relight._parse_overrides(bad)
     try:
-        bench_relight.CONFIG_OVERRIDES.update(support_radius=10)
-        assert bench_relight.relight_config() == RelightConfig(support_radius=10)
-        assert bench_relight.relight_config(support_radius=0, blur=0.0) == RelightConfig(blur=0.0)
+        bench_relight.CONFIG_OVERRIDES.update(support_radius=5)
+        assert bench_relight.relight_config() == RelightConfig(support_radius=5)
+        assert bench_relight.relight_config(support_radius=0, blur=0.0) == RelightConfig(support_radius=0, blur=0.0)
     finally:
         bench_relight.CONFIG_OVERRIDES.clear()
     assert bench_relight.relight_config() == RelightConfig()

@@ -467,7 +467,7 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 "default, completion_distance 0": relight_config(completion_distance=0.0),
                 "default, min_proxy_hits 0": relight_config(min_proxy_hits=0.0),
                 "default, min_cluster 20": relight_config(min_cluster=20),
-                "default, the paper's cluster rule alone (support_radius 0)": relight_config(support_radius=0),
+                "default, the supported parts too (support_radius 10)": relight_config(support_radius=10),
                 "default, no blur": relight_config(blur=0.0),
                 "default, dropped clusters brought into light (dropped light, the paper)": relight_config(dropped="light"),
                 "default, dropped clusters moved like every pixel (dropped none)": relight_config(dropped="none"),

@@ -242,9 +242,10 @@ class RelightConfig:
         its pixels whose rays find an occluder reaches the rule's (:func:`~mvintrinsic.shadow_clusters.supported_parts`:
         Step 3's labels join true shadows with unsupported ones into clusters the rule drops whole); >= 0, 0: the
         paper's rule alone (default). With ``lost_occluders``, the parts and their sheets are the expected image over
-        the shadow and the paper's dropping (``belief``). Beyond the paper; 10 gains 0.23 dB on row (d) and 0.39 on
-        row (e) (five 480x360 scenes) but each new sun takes 0.095-0.113 s per view at 1000x750 (0.093-0.109 at
-        ``ray_stride=3``), over the 0.1 s budget: an option (``docs/relight.md``, "Supported parts of the shadow clusters").
+        the shadow and the paper's dropping (``belief``). Beyond the paper; 10 gains 0.13 dB on row (d) and 0.28 on
+        row (e) on average (five 480x360 scenes, 22 scene-suns; -0.15 to +1.51) but each new sun takes 0.073-0.110 s
+        per view at 1000x750 depending on the machine's state, against 0.057-0.080 without: over the 0.1 s budget at
+        times, so an option (``docs/relight.md``, "Supported parts of the shadow clusters").
     """
 
     tau_s: float = TAU_S
@@ -266,7 +267,7 @@ class RelightConfig:
     consistency: float | None = 0.3
     fusion: str | None = "capture"
     lost_occluders: OccupancyConfig | None = LOST_OCCLUDERS
-    support_radius: int = 10
+    support_radius: int = 0
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),

@@ -67,6 +67,11 @@ took 0.30 s per view with one caster ray and one proxy ray per pixel; now 0.086 
   one; two views at a time, the images identical to the bit. With the blur in OpenCV (6x
   faster than SciPy's, the same kernel, within 3e-7), a new sun at 1000x750 went from
   0.088-0.106 to 0.052-0.075 s per view (three scenes resampled, ``docs/relight.md``, "Speed").
+* **One ray array per query, handed to Embree without a copy**: the origins gathered and offset in
+  float64 once, cast to float32 into one (N, 6) array whose rows (and the subsets the caster lets
+  through) go to every structure by ``open3d.core.Tensor.from_numpy``; the grid's states spread
+  to the pixels by ``np.repeat`` and the neighbour cells by ``cv2.dilate``. The same rays and
+  states; 14% less time per new sun on one core (street_s0 at 1000x750).
 
 Ordering the rays in 8x8 or 16x16 tiles instead of rows changed the Embree time by under 6%:
 not done.

@@ -183,8 +183,8 @@ class Tracer:
         return corners, triangles
 
     def _rays(self, origins: np.ndarray, directions: np.ndarray):
-        rays = np.concatenate([origins, directions], axis=1).astype(np.float32)
-        return self._o3c.Tensor(rays)
+        """Embree's ray tensor of ``origins`` and ``directions`` (N, 3) each (:func:`_ray_array`, no second copy)."""
+        return self._o3c.Tensor.from_numpy(_ray_array(origins, directions))
 
     def intersect(
         self,
@@ -366,8 +366,8 @@ class Tracer:
 
 
 def _ray_array(origins: np.ndarray, direction: np.ndarray) -> np.ndarray:
-    """Embree's rays (N, 6) float32, C-contiguous: ``origins`` (N, 3) and the one ``direction`` (3,), each cast to
-    float32 as Embree takes them (``open3d.core.Tensor.from_numpy`` reads them without a copy)."""
+    """Embree's rays (N, 6) float32, C-contiguous: ``origins`` (N, 3) and one ``direction`` (3,) or one per ray
+    (N, 3), each cast to float32 as Embree takes them (``open3d.core.Tensor.from_numpy`` reads them without a copy)."""
     rays = np.empty((len(origins), 6), dtype=np.float32)
     rays[:, :3] = origins
     rays[:, 3:] = direction

@@ -88,7 +88,7 @@ from .pixels import nearest_fill
 from .raytrace import DEFAULT_BATCH, Tracer, _ray_array, triangle_scene
 from .shadow_clusters import TAU_S, kept_clusters, shadow_pixels, supported_parts
 
-__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "LOST_OCCLUDERS", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
+__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "ANCHOR_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "LOST_OCCLUDERS", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
 
 #: ``primitive_ids`` of a ray that hits nothing (open3d's ``RaycastingScene.INVALID_ID``).
 _INVALID_ID = np.iinfo(np.uint32).max
@@ -110,6 +110,8 @@ DROPPED_MODES = ("light", "static", "none")
 SKY_PIXEL_MODES = ("paper", "model", "input")
 #: Which shadow pixels the caster is built from, :attr:`RelightConfig.caster_pixels`.
 CASTER_PIXEL_MODES = ("paper", "labels")
+#: How the capture ``v_sun`` anchors the new shadow layer, :attr:`RelightConfig.anchor` (or None).
+ANCHOR_MODES = ("shadow", "both")
 #: The default of :attr:`RelightConfig.lost_occluders`: :class:`OccupancyConfig` with the proxy's 1 px silhouette
 #: band out of the evidence (``docs/relight.md``, "Occluders the proxy lost").
 LOST_OCCLUDERS = OccupancyConfig(silhouette=1)
@@ -246,6 +248,13 @@ class RelightConfig:
         row (e) on average (five 480x360 scenes, 22 scene-suns; -0.15 to +1.51) but each new sun takes 0.073-0.110 s
         per view at 1000x750 depending on the machine's state, against 0.057-0.080 without: over the 0.1 s budget at
         times, so an option (``docs/relight.md``, "Supported parts of the shadow clusters").
+    anchor : {"shadow", "both"} or None
+        How the capture ``v_sun`` anchors the new shadow layer (:data:`ANCHOR_MODES`; beyond the paper). The caster's
+        own shadow at the capture sun, ``C(d)``, is not the photograph's (a shadow it cannot cast, an edge a pixel off,
+        the blur); ``v' = clip(C(d') + a, 0, 1)`` with the anchor ``a = v_sun - C(d)`` (``"both"``: at the capture sun
+        ``v'`` is ``v_sun``, and only the caster's *change* moves a shadow) or ``a = min(0, v_sun - C(d))``
+        (``"shadow"``: a captured shadow the caster does not cast stays, as a dropped cluster's does with
+        ``dropped="static"``, and the caster only lightens what it shades). None: ``v' = C(d')`` (the paper).
     """
 
     tau_s: float = TAU_S
@@ -268,13 +277,14 @@ class RelightConfig:
     fusion: str | None = "capture"
     lost_occluders: OccupancyConfig | None = LOST_OCCLUDERS
     support_radius: int = 0
+    anchor: str | None = None
 
     def __post_init__(self) -> None:
         for name, allowed in (("method", RELIGHT_METHODS), ("casters", CASTER_MODES), ("fusion", FUSION_MODES),
                               ("dropped", DROPPED_MODES), ("sky_pixels", SKY_PIXEL_MODES),
-                              ("caster_pixels", CASTER_PIXEL_MODES)):
+                              ("caster_pixels", CASTER_PIXEL_MODES), ("anchor", ANCHOR_MODES)):
             value = getattr(self, name)
-            if name == "fusion" and value is None:
+            if name in ("fusion", "anchor") and value is None:
                 continue
             if not isinstance(value, str) or value not in allowed:
                 raise ValueError(f"{name} must be one of {', '.join(map(repr, allowed))}, got {value!r}")

@@ -139,6 +139,7 @@ import numpy as np
 from ._cluster import _as_client, _Rebuilt, _ViewTasks
 from ._validation import as_array, as_count, config_or_default, describe
 from .caster import (
+    ANCHOR_MODES,
     CASTER_MODES,
     CASTER_PIXEL_MODES,
     DROPPED_MODES,
@@ -201,12 +202,24 @@ from .shadow_caster import (
     receiver_points,
 )
 
-__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "RELIGHT_METHODS",
+__all__ = ["NORMAL_GRID_HEIGHT", "RGB_WAVELENGTHS_UM", "ANCHOR_MODES", "CASTER_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "RELIGHT_METHODS",
            "SKY_ADJUSTMENTS", "SKY_GRID_HEIGHT", "SKY_PIXEL_MODES", "SKY_RATIO_FLOOR", "Caster",
            "RelightConfig", "Relighter", "ShadowCaster", "as_sun_direction", "build_caster",
            "contradicted_primitives", "merge_casters", "paper_environment_factors", "receiver_depth",
            "receiver_normals", "receiver_points", "relight", "remove_contradicted", "shadow_pixels",
            "sky_irradiance_ratio", "sky_pixel_factors"]
+
+
+def _anchor_offsets(capture: np.ndarray, moved: np.ndarray, mode: str) -> tuple[np.ndarray, np.ndarray]:
+    """The anchor of :attr:`RelightConfig.anchor` where it is not 0: flat indices (int64) and ``a`` (float32).
+
+    ``a = capture - moved`` (``"both"``) or ``min(0, capture - moved)`` (``"shadow"``), both (H, W) in [0, 1]:
+    the capture ``v_sun`` and the caster's ``v'`` at the capture sun."""
+    offset = np.asarray(capture, np.float32).reshape(-1) - np.asarray(moved, np.float32).reshape(-1)
+    if mode == "shadow":
+        np.minimum(offset, 0.0, out=offset)
+    index = np.flatnonzero(offset)
+    return _read_only(index), _read_only(offset[index])
 
 
 def _check_decomposition(decomposition: object, scene: object) -> tuple[Decomposition, Scene]:
@@ -437,6 +450,13 @@ class Relighter:
         self._turbidity = lighting.sky.turbidity if lighting.sky is not None else config.turbidity
         self._new_sun = {s: self._prepare_new_sun(s, cosine[s], excluded, rescued.get(s)) for s in self.stems}
         timings["new_sun_setup"] = time.perf_counter() - start
+        # RelightConfig.anchor (beyond the paper): the capture v_sun minus the caster's own v' at the capture sun.
+        self._anchor: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        if config.anchor is not None:
+            start = time.perf_counter()
+            at_capture = self._moved(capture)
+            self._anchor = {s: _anchor_offsets(visibility[s], at_capture[s], config.anchor) for s in self.stems}
+            timings["anchor"] = time.perf_counter() - start
         # The sun irradiance of the receivers at capture, the denominator of S_ind's scale.
         self._sun_irradiance = sum(float((cosine[s] * visibility[s])[known[s]].sum()) for s in self.stems)
         self._sky_grid: np.ndarray | None = None
@@ -490,9 +510,20 @@ class Relighter:
         dict of str to (H, W) float32
             ``v'`` in [0, 1] per view, in scene order.
         """
-        direction = as_sun_direction(sun, up=self.up)
+        return self._anchored(self._moved(as_sun_direction(sun, up=self.up)))
+
+    def _moved(self, direction: np.ndarray) -> dict[str, np.ndarray]:
+        """The caster's ``v'`` of every view at the unit sun ``direction``, fused (:meth:`visibility_at` before the
+        anchor)."""
         out = self._per_view(lambda s: self._new_sun[s].visibility(direction, self.shadow_casters[s], self.tracer))
         return out if self._fusion is None else _fuse(self._fusion, out, run=self._per_view)
+
+    def _anchored(self, visibility: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``clip(v' + a, 0, 1)`` in place with each view's anchor ``a`` (:attr:`RelightConfig.anchor`)."""
+        for s, (index, offset) in self._anchor.items():
+            flat = visibility[s].reshape(-1)
+            flat[index] = np.clip(flat[index] + offset, 0.0, 1.0)
+        return visibility
 
     def _per_view(self, task: Callable[[str], Any]) -> dict[str, Any]:
         """``{stem: task(stem)}`` in scene order, on the constructor's ``threads``."""
@@ -734,9 +765,10 @@ class Relighter:
         given = None if visibility is None else tasks.scatter(self._check_visibility(visibility))
         args = {s: (remote["new_sun"][s], remote["casters"][s], remote["tracer"], direction, shadow_sun,
                     None if given is None else given[s]) for s in self.stems}
-        if visibility is None and self._fusion is not None:  # every view's v' first, fused here
+        if visibility is None and (self._fusion is not None or self._anchor):  # every view's v' first, then here
             terms = tasks.gather(tasks.submit("relight-shadows", _new_sun_terms, args))
-            given = tasks.scatter(_fuse(self._fusion, {s: terms[s][0] for s in self.stems}))
+            moved = {s: terms[s][0] for s in self.stems}
+            given = tasks.scatter(self._anchored(moved if self._fusion is None else _fuse(self._fusion, moved)))
             args = {s: (*args[s][:-1], given[s]) for s in self.stems}
         environment, indirect_factor = self._environment(direction)
         if indirect_factor is not None:

@@ -94,8 +94,9 @@ def test_decompose_on_a_cluster_is_identical_to_the_serial_run(scene, serial, cl
 
 
 @pytest.mark.parametrize("config", [RelightConfig(), RelightConfig(sky="model"), RelightConfig(casters="merged"),
-                                    RelightConfig(sky="model", lost_occluders=OccupancyConfig(min_views=2, min_hits=0.3))],
-                         ids=["paper-sky", "model-sky", "merged", "lost-occluders"])
+                                    RelightConfig(sky="model", lost_occluders=OccupancyConfig(min_views=2, min_hits=0.3)),
+                                    RelightConfig(anchor="both"), RelightConfig(anchor="shadow", fusion=None)],
+                         ids=["paper-sky", "model-sky", "merged", "lost-occluders", "anchor", "anchor-no-fusion"])
 def test_relighting_on_a_cluster_is_identical(scene, serial, client, config):
     result = serial["default"]
     here = Relighter(result, scene, config=config)

@@ -45,7 +45,8 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
   (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, the dropped clusters
   brought into light (``dropped="light"``, the paper) or moved like every pixel (``"none"``), with the pixels the proxy does not explain relit like the
   others (``consistency=None``, the paper), each view's new shadow alone (``fusion=None``, the
-  paper) and fused over every view that sees a point (``fusion="all"``); per row also the
+  paper) and fused over every view that sees a point (``fusion="all"``), and each
+  :attr:`~mvintrinsic.relight.RelightConfig.anchor` (None, the paper; ``"shadow"``; ``"both"``); per row also the
   ``agreement_interior`` at each relit sun;
 * ``mesh_visibility_iou``: row (c)'s shadow (``< 0.5``) against ``gt/relit/<tag>/sun_visibility``
   over the non-sky pixels, without and with the blur (a check of the bound);
@@ -147,6 +148,7 @@ from mvintrinsic.io import load_scene, read_image, read_proxy, read_scene_json, 
 from mvintrinsic.metrics import psnr
 from mvintrinsic.photo_occupancy import OccupancyConfig
 from mvintrinsic.pipeline import carry_to_pixels
+from mvintrinsic.planes import PlaneConfig
 from mvintrinsic.raytrace import Tracer
 from mvintrinsic.relight import (
     SKY_ADJUSTMENTS,
@@ -188,8 +190,9 @@ def relight_config(**options) -> RelightConfig:
 
 
 def _parse_overrides(text: str | None) -> dict:
-    """``--relight-config``'s JSON object -> RelightConfig keywords (``lost_occluders``: an object of
-    :class:`~mvintrinsic.photo_occupancy.OccupancyConfig` keywords, or null)."""
+    """``--relight-config``'s JSON object -> RelightConfig keywords (``lost_occluders``, ``planes``: an object of
+    :class:`~mvintrinsic.photo_occupancy.OccupancyConfig` or :class:`~mvintrinsic.planes.PlaneConfig` keywords, or
+    null)."""
     if not text:
         return {}
     try:
@@ -203,6 +206,8 @@ def _parse_overrides(text: str | None) -> dict:
     try:
         if isinstance(options.get("lost_occluders"), dict):
             options["lost_occluders"] = OccupancyConfig(**options["lost_occluders"])
+        if isinstance(options.get("planes"), dict):
+            options["planes"] = PlaneConfig(**options["planes"])
         RelightConfig(**options)  # validated here, before any scene is read
     except (TypeError, ValueError) as error:
         raise SystemExit(f"--relight-config: {error}") from None
@@ -473,7 +478,10 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 "default, dropped clusters moved like every pixel (dropped none)": relight_config(dropped="none"),
                 "default, unexplained pixels moved too (consistency None)": relight_config(consistency=None),
                 "default, each view alone (fusion None)": relight_config(fusion=None),
-                "default, fused over every view (fusion all)": relight_config(fusion="all")}
+                "default, fused over every view (fusion all)": relight_config(fusion="all"),
+                "default, no anchor (anchor None, the paper: v' = C(d'))": relight_config(anchor=None),
+                "default, the captured shadow the caster does not cast kept (anchor shadow)": relight_config(anchor="shadow"),
+                "default, the capture v_sun plus the caster's change (anchor both)": relight_config(anchor="both")}
     for label, config in variants.items():
         out[label] = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):

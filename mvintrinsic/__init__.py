@@ -43,6 +43,7 @@ from .pipeline import (  # noqa: E402
     step4,
 )
 from .pixels import PixelQuantities  # noqa: E402
+from .planes import PlaneConfig  # noqa: E402
 from .raytrace import Tracer  # noqa: E402
 
 # ``relight`` (the function) stays in its module: a package attribute of that name would hide the
@@ -64,6 +65,7 @@ __all__ = [
     "Occluders",
     "PixelQuantities",
     "PixelShadowLabels",
+    "PlaneConfig",
     "Proxy",
     "RelightConfig",
     "Relighter",

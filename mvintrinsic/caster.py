@@ -77,7 +77,7 @@ References
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -85,6 +85,7 @@ from ._validation import as_array, as_unit_vector, config_or_default, describe, 
 from .camera import Camera
 from .photo_occupancy import OccupancyConfig
 from .pixels import nearest_fill
+from .planes import PlaneConfig
 from .raytrace import DEFAULT_BATCH, Tracer, _ray_array, triangle_scene
 from .shadow_clusters import TAU_S, kept_clusters, shadow_pixels, supported_parts
 
@@ -157,6 +158,10 @@ class RelightConfig:
         0, 0: the proxy's own normals. Not in the paper; 0.4 as Step 1's
         :attr:`~mvintrinsic.env_shading.Step1Config.normal_smoothing`, so that the relit ``S_sun`` uses the normals
         the decomposition used.
+    planes : PlaneConfig or None
+        The receivers' smoothed normals snapped to the proxy's dominant planes (:mod:`mvintrinsic.planes`), as
+        :attr:`~mvintrinsic.env_shading.Step1Config.planes` (the same default, so that the relit ``S_sun`` uses the
+        normals the decomposition used); None: the smoothed normals. Not in the paper.
     sky : {"model", "paper"}
         How the environment shading follows the sun (:data:`SKY_ADJUSTMENTS`, module docstring, "Adjusting shading").
         ``"paper"``: our reading of the paper's adjustment, a red shift of ``S_sky`` and ``S_ind`` scaled like the
@@ -265,6 +270,7 @@ class RelightConfig:
     blur: float = 1.0
     ray_offset: float = 0.02
     normal_smoothing: float = 0.4
+    planes: PlaneConfig | None = field(default_factory=PlaneConfig)
     sky: str = "paper"
     sky_pixels: str = "paper"
     turbidity: float = 3.5
@@ -314,6 +320,8 @@ class RelightConfig:
             if not is_real(self.consistency) or not 0.0 < self.consistency < np.inf:
                 raise ValueError(f"consistency must be a finite number > 0 or None, got {self.consistency!r}")
             object.__setattr__(self, "consistency", float(self.consistency))
+        if not isinstance(self.planes, (PlaneConfig, type(None))):
+            raise TypeError(f"planes must be a PlaneConfig or None, got {describe(self.planes)}")
         if not isinstance(self.lost_occluders, (OccupancyConfig, type(None))):
             raise TypeError(f"lost_occluders must be an OccupancyConfig or None, got {describe(self.lost_occluders)}")
 

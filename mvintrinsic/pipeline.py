@@ -61,6 +61,7 @@ from .multiview_shadows import MultiViewShadowConfig, MultiViewShadowLabels, Pix
 from .occluders import OccluderConfig, carve_occluders, occluded_step1, seen_occluders, smooth_occluder_reflectance
 from .photo_occupancy import ClearRaysConfig, OccupancyConfig
 from .pixels import PixelQuantities, layers_from_shading, pixel_quantities
+from .planes import PlaneConfig
 from .raytrace import Tracer, depth_map
 from .resolution import downscale_scene, upsample_layers
 from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, ModelChoice
@@ -226,7 +227,7 @@ class Config:
                 base, exposure=ExposureConfig(method="none"), shadow=ShadowConfig(method="paper"), occluders=None,
                 env_refine=EnvRefineConfig(method="paper"),
                 sun=dataclasses.replace(base.sun, direct_sun="always", min_pair_contrast=None),
-                step1=dataclasses.replace(base.step1, normal_smoothing=0.0, sky_colour_tolerance=None,
+                step1=dataclasses.replace(base.step1, normal_smoothing=0.0, planes=None, sky_colour_tolerance=None,
                                           sky=dataclasses.replace(base.step1.sky, model="preetham")))
         return dataclasses.replace(  # "best"
             base, step1=dataclasses.replace(base.step1, n_rays=256),
@@ -255,7 +256,7 @@ _NESTED = {"step1": Step1Config, "exposure": ExposureConfig, "sun": SunConfig, "
            "segmentation": SegmentationConfig,
            "shadow": ShadowConfig, "multiview": MultiViewShadowConfig, "matting": MattingConfig,
            "env_refine": EnvRefineConfig, "occluders": OccluderConfig, "clear_rays": ClearRaysConfig,
-           "occupancy": OccupancyConfig}
+           "occupancy": OccupancyConfig, "planes": PlaneConfig}
 
 
 def _from_dict(kind: type, data: Mapping[str, Any], where: str) -> Any:

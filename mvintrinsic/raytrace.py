@@ -22,6 +22,7 @@ from ._libusb import ensure_libusb
 from ._validation import describe, is_real
 from .camera import Camera
 from .image_model import clamped_cosine
+from .planes import PlaneConfig, detect_planes, planar_normals
 from .scene import Proxy
 
 __all__ = [
@@ -443,13 +444,23 @@ def sun_visibility(points: np.ndarray, normals: np.ndarray, sun_direction: np.nd
     return out
 
 
-def vertex_normals(proxy: Proxy, normal_smoothing: float) -> np.ndarray:
-    """The vertex normals every shading term uses: the proxy's, smoothed by ``normal_smoothing`` metres.
+def vertex_normals(proxy: Proxy, normal_smoothing: float, planes: PlaneConfig | None = None) -> np.ndarray:
+    """The vertex normals every shading term uses: the proxy's, smoothed by ``normal_smoothing`` metres,
+    snapped to the proxy's dominant planes with ``planes``.
 
     :func:`smooth_normals` when ``normal_smoothing > 0``, the proxy's own normals (read-only) at 0
-    (:attr:`Step1Config.normal_smoothing`, :attr:`mvintrinsic.relight.RelightConfig.normal_smoothing`).
+    (:attr:`Step1Config.normal_smoothing`, :attr:`mvintrinsic.relight.RelightConfig.normal_smoothing`);
+    then, with a :class:`~mvintrinsic.planes.PlaneConfig` (beyond the paper; :attr:`Step1Config.planes`,
+    :attr:`mvintrinsic.relight.RelightConfig.planes`), a vertex on one of the planes
+    :func:`~mvintrinsic.planes.detect_planes` finds takes the plane's normal
+    (:func:`~mvintrinsic.planes.planar_normals`). A proxy without triangles (a point cloud) is
+    snapped as well; with fewer vertices than three the normals are returned as they are.
     """
-    return smooth_normals(proxy, normal_smoothing) if normal_smoothing > 0 else proxy.normals
+    normals = smooth_normals(proxy, normal_smoothing) if normal_smoothing > 0 else proxy.normals
+    if planes is None or len(proxy.vertices) < 3:
+        return normals
+    found = detect_planes(proxy.vertices, normals, config=planes)
+    return planar_normals(proxy.vertices, normals, found, config=planes)[0]
 
 
 def smooth_normals(proxy: Proxy, sigma: float) -> np.ndarray:

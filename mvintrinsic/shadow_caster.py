@@ -99,6 +99,7 @@ from .caster import Caster, RelightConfig, _check_camera, _check_rays, _check_su
 from .envmap import horizontal_frame
 from .photo_occupancy import nearest_colour, shared_receivers, unexplained_pixels
 from .pixels import nearest_fill
+from .planes import PlaneConfig
 from .raytrace import DEFAULT_BATCH, RayHits, Tracer, _ray_array, triangle_scene, vertex_normals
 from .results import Decomposition
 from .scene import Scene, Sun, View
@@ -541,7 +542,8 @@ def _pixel_normals(tracer: Tracer, hits, shape: tuple[int, int], normals_at_vert
     return nearest_fill(normals, covered)
 
 
-def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float = 0.0) -> np.ndarray:
+def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float = 0.0,
+                     planes: PlaneConfig | None = None) -> np.ndarray:
     """Unit proxy normal of every pixel's receiver point (the ``n`` of the relit ``S_sun``, Sec. 8).
 
     As :func:`mvintrinsic.pixels.pixel_quantities` does it: the proxy's vertex normals
@@ -558,6 +560,9 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
         Standard deviation (metres) of the smoothing of the vertex normals first
         (:func:`mvintrinsic.raytrace.smooth_normals`; :attr:`RelightConfig.normal_smoothing`);
         0 (the default): the proxy's own normals.
+    planes : PlaneConfig, optional
+        Then snap them to the proxy's dominant planes (:func:`mvintrinsic.raytrace.vertex_normals`;
+        :attr:`RelightConfig.planes`); None (the default): not.
 
     Returns
     -------
@@ -574,7 +579,7 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
     if not is_real(normal_smoothing) or not 0.0 <= normal_smoothing < np.inf:
         raise ValueError(f"normal_smoothing must be a finite number >= 0 (metres), got {normal_smoothing!r}")
     hits, _, _ = _cast_pixels(camera, tracer)
-    return _pixel_normals(tracer, hits, camera.shape, vertex_normals(tracer.proxy, normal_smoothing))
+    return _pixel_normals(tracer, hits, camera.shape, vertex_normals(tracer.proxy, normal_smoothing, planes))
 
 
 def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray], hits: Mapping[str, RayHits],
@@ -650,7 +655,7 @@ def _view_geometry(decomposition: Decomposition, scene: Scene, config: RelightCo
     proxy's vertex normals; per stem the receiver points, normals, camera-ray hits, capture cosine (Eq.
     (1)), pixels with an estimate; the shared receivers and nearest colours (``{}`` if unneeded)."""
     start = time.perf_counter()
-    smoothed = vertex_normals(tracer.proxy, config.normal_smoothing)
+    smoothed = vertex_normals(tracer.proxy, config.normal_smoothing, config.planes)
     receivers, normals, hits, cosine, known = {}, {}, {}, {}, {}
     for view in scene.views:
         stem, camera = view.stem, view.camera

@@ -1055,7 +1055,8 @@ def test_the_fitted_sky_sets_the_model_turbidity(scene):
     moved = (SUN_AZIMUTH, SUN_ELEVATION + 15.0)
     a = Relighter(with_sky, box_scene, config=config).layers(moved)["box"].sky_shading
     b = Relighter(without, box_scene, config=config).layers(moved)["box"].sky_shading
-    normals = receiver_normals(scene.camera, scene.tracer, normal_smoothing=config.normal_smoothing)
+    normals = receiver_normals(scene.camera, scene.tracer, normal_smoothing=config.normal_smoothing,
+                               planes=config.planes)
     for got, turbidity in ((a, 2.2), (b, 6.0)):
         expected = np.asarray(with_sky.layers["box"].sky_shading) * sky_irradiance_ratio(
             normals, direction, as_sun_direction(moved), turbidity=turbidity)

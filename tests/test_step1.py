@@ -27,6 +27,7 @@ from mvintrinsic.raytrace import (
     smooth_normals,
     subdivide,
     sun_visibility,
+    vertex_normals,
     voxel_subsample,
 )
 
@@ -304,7 +305,8 @@ def test_step1_on_the_demo_scene_with_a_clean_proxy(demo_clean):
     assert result.sky_model.converged and 1.7 <= result.sky_model.turbidity <= 10
     assert abs(result.horizon.plane[2]) > 0.99 and abs(result.horizon.plane[3]) < 0.05  # the ground z = 0
     assert set(result.timings) >= {"environment", "vertex_radiance", "environment_shading", "sun_visibility"}
-    np.testing.assert_array_equal(result.normals, smooth_normals(scene.proxy, Step1Config().normal_smoothing))
+    np.testing.assert_array_equal(result.normals, vertex_normals(scene.proxy, Step1Config().normal_smoothing,
+                                                                 Step1Config().planes))
     error = env_error_in_gt_shadow(folder, scene, result)
     assert np.all(error <= CLEAN_PROXY_ENV_ERROR_MAX), error
     # ~v against the ground truth, all views

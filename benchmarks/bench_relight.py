@@ -140,7 +140,6 @@ from scipy import ndimage
 
 import mvintrinsic
 from mvintrinsic import Config, decompose, image_model
-from mvintrinsic.caster import AUTO_COMPLETION_DISTANCE
 from mvintrinsic.correspondence import cross_view_agreement
 from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import ground_truth_decomposition, read_ground_truth
@@ -162,6 +161,7 @@ from mvintrinsic.relight import (
     receiver_points,
 )
 from mvintrinsic.results import SHADOW_LABELS
+from mvintrinsic.shadow_caster import AUTO_COMPLETION_DISTANCE
 from mvintrinsic.sun_position import azimuth_elevation
 
 ROOT = Path(__file__).resolve().parents[2]

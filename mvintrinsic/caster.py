@@ -62,7 +62,7 @@ scenes with MVS-like proxies (``docs/relight.md`` gives every figure):
   than ``completion_distance`` (0.6 m) along the new sun ray complete nothing: a noisy proxy
   shades itself there when the sun turns, while the true short-range shadows are the caster's;
   an exact proxy does not, and ``completion_distance="auto"`` (default) measures which
-  (:func:`choose_completion_distance`).
+  (:func:`~mvintrinsic.shadow_caster.choose_completion_distance`).
 * **Each view keeps its own caster** (``casters="own"``, as the paper): the union of all views'
   measured 0.6-3.1 dB lower with the true layers on courtyard_s1 (other views' sheets, lifted
   from receivers misplaced under lost foliage, shade the view's lit pixels): an option.
@@ -89,7 +89,7 @@ from .planes import PlaneConfig
 from .raytrace import DEFAULT_BATCH, Tracer, _ray_array, triangle_scene
 from .shadow_clusters import TAU_S, kept_clusters, shadow_pixels, supported_parts
 
-__all__ = ["AUTO_COMPLETION_DISTANCE", "SELF_SHADING_SHARE", "capture_first_hits", "choose_completion_distance", "proxy_self_shading", "CASTER_JUMP", "CASTER_MODES", "ANCHOR_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "LOST_OCCLUDERS", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
+__all__ = ["capture_first_hits", "CASTER_JUMP", "CASTER_MODES", "ANCHOR_MODES", "CASTER_PIXEL_MODES", "DROPPED_MODES", "LOST_OCCLUDERS", "RELIGHT_METHODS", "SKY_ADJUSTMENTS", "SKY_PIXEL_MODES", "SURFACE_JUMP", "Caster", "RelightConfig", "build_caster", "contradicted_primitives", "kept_clusters", "merge_casters", "remove_contradicted", "shadow_pixels"]
 
 #: ``primitive_ids`` of a ray that hits nothing (open3d's ``RaycastingScene.INVALID_ID``).
 _INVALID_ID = np.iinfo(np.uint32).max
@@ -207,10 +207,11 @@ class RelightConfig:
         ``method="multiview"``: proxy hits nearer than this many metres along the new sun ray complete no shadow; >=
         0. Self-shadowing by the proxy's own reconstruction noise sits there, while the short-range shadows the image
         shows (recesses, ledges) are already in the caster. ``"auto"`` (default, beyond the paper):
-        :data:`AUTO_COMPLETION_DISTANCE` (0.6; 0.3, 0.6 and 1.0 measured, module docstring) when the proxy shades
-        itself (:func:`proxy_self_shading`: at least :data:`SELF_SHADING_SHARE` of the lit pixels' sun rays hit the
-        proxy within that distance at the capture sun), else 0: an exact proxy keeps its near shadows
-        (:func:`choose_completion_distance`).
+        :data:`~mvintrinsic.shadow_caster.AUTO_COMPLETION_DISTANCE` (0.6; 0.3, 0.6 and 1.0 measured, module
+        docstring) when the proxy shades itself (:func:`~mvintrinsic.shadow_caster.proxy_self_shading`: at least
+        :data:`~mvintrinsic.shadow_caster.SELF_SHADING_SHARE` of the lit pixels' sun rays hit the proxy within that
+        distance at the capture sun), else 0: an exact proxy keeps its near shadows
+        (:func:`~mvintrinsic.shadow_caster.choose_completion_distance`).
     ray_stride : int
         The new sun's shadow rays are cast from every ``ray_stride``-th pixel along both image axes, then from every
         pixel of the cells whose four sampled corners disagree (a shadow edge crosses them) and of their neighbour
@@ -812,59 +813,6 @@ def _revote(caster: Caster, own: np.ndarray, others: list[np.ndarray], sun: np.n
     if not len(caster.triangles) or not any(len(p) for p in others):
         return caster
     return remove_contradicted(caster, [own, *others], sun, config=config, batch=batch)
-
-
-#: The completion distance ``RelightConfig(completion_distance="auto")`` gives a proxy that shades
-#: itself, metres (the former fixed default; 0.3, 0.6 and 1.0 measured on MVS-like proxies).
-AUTO_COMPLETION_DISTANCE = 0.6
-#: Share of the lit pixels' capture-sun rays hitting the proxy within :data:`AUTO_COMPLETION_DISTANCE`
-#: above which the proxy is taken to shade itself. Measured on MVS-like proxies: 0.87% (the embedded
-#: demo, the pipeline's labels) to 30% (dev_courtyard), 2.6-21% on the five 480x360 scenes and
-#: courtyard_1000 (true labels); 0.04% on the exact meshes (label noise at the shadow edges). The
-#: threshold sits between them (their geometric middle).
-SELF_SHADING_SHARE = 0.002
-
-
-def proxy_self_shading(tracer: Tracer, lit_points: Sequence[np.ndarray], sun_direction: np.ndarray, *,
-                       distance: float, config: RelightConfig | None = None, batch: int = DEFAULT_BATCH) -> float:
-    """Share of lit receiver points whose ray toward the (capture) sun hits the proxy within ``distance`` metres.
-
-    The image says these points are lit, so such a hit is the proxy shading itself: reconstruction
-    noise, a receiver a few centimetres inside the surface. Rays start ``config.ray_offset`` toward
-    the sun, as every shadow ray. Returns 0 without lit points.
-    """
-    t, _ = capture_first_hits(tracer, lit_points, sun_direction, config=config, batch=batch)
-    return _share_within(t, distance)
-
-
-def _share_within(t: np.ndarray, distance: float) -> float:
-    """Share of the first-hit distances ``t`` below ``distance``; 0 without any."""
-    return float(np.count_nonzero(t < distance) / len(t)) if len(t) else 0.0
-
-
-def choose_completion_distance(config: RelightConfig, tracer: Tracer, lit_points: Sequence[np.ndarray],
-                               sun_direction: np.ndarray, *, batch: int = DEFAULT_BATCH) -> tuple[float, float | None]:
-    """The completion distance to use and, for ``"auto"``, the self-shading share it was chosen from.
-
-    A number in ``config.completion_distance`` is returned as it is (share None). With ``"auto"``:
-    :data:`AUTO_COMPLETION_DISTANCE` when :func:`proxy_self_shading` at that distance is at least
-    :data:`SELF_SHADING_SHARE`, else 0. Measured with the true layers at +-15, +-30 degrees of
-    azimuth and +10 of elevation (``docs/relight.md``): on the exact meshes of five scenes 0 instead
-    of 0.6 raises row (d) by 0.35-0.62 dB per scene on average (20 of 25 scene-suns, at most 0.15 dB
-    lower on the others); the MVS-like proxies all shade themselves and keep 0.6.
-    """
-    if config.completion_distance != "auto":
-        return float(config.completion_distance), None
-    t, _ = capture_first_hits(tracer, lit_points, sun_direction, config=config, batch=batch)
-    return _completion_distance(config, t)
-
-
-def _completion_distance(config: RelightConfig, t: np.ndarray) -> tuple[float, float | None]:
-    """:func:`choose_completion_distance` from the lit points' first-hit distances ``t`` (:func:`capture_first_hits`)."""
-    if config.completion_distance != "auto":
-        return float(config.completion_distance), None
-    share = _share_within(t, AUTO_COMPLETION_DISTANCE)
-    return (AUTO_COMPLETION_DISTANCE if share >= SELF_SHADING_SHARE else 0.0), share
 
 
 def merge_casters(casters: Sequence[Caster]) -> Caster:

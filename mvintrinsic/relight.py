@@ -150,7 +150,6 @@ from .caster import (
     RelightConfig,
     _check_sun,
     _check_tracer,
-    _completion_distance,
     _contradicted,
     _revote,
     build_caster,
@@ -191,6 +190,7 @@ from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene
 from .shadow_caster import (
     ShadowCaster,
+    _completion_distance,
     _fuse,
     _fusion_matrices,
     _read_only,

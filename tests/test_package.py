@@ -18,7 +18,7 @@ PACKAGE = Path(mvintrinsic.__file__).parent
 # Bottom to top. A core module may import only modules listed before it; the edge may import the
 # core, and the core never imports the edge (docs/architecture.md).
 CORE_LAYERS = [
-    "_version", "_validation", "_cluster", "_libusb", "camera", "scene", "results", "image_model", "envmap", "skymodel", "environment", "raytrace", "stereo", "env_shading",
+    "_version", "_validation", "_cluster", "_libusb", "camera", "scene", "results", "image_model", "envmap", "skymodel", "environment", "planes", "raytrace", "stereo", "env_shading",
     "sun_position", "exposure", "pixels", "resolution", "correspondence", "photo_occupancy", "sun_calibration", "segmentation", "shadow_mrf",
     "multiview_shadows", "laplacian", "matting", "env_refine", "occluders", "model_choice", "shadow_clusters", "caster", "shadow_caster", "relit_shading", "relight",
     "pipeline",

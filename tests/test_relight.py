@@ -139,7 +139,7 @@ def test_config_errors_name_the_field(field, value):
 
 def test_completion_distance_auto_follows_the_proxys_self_shading(scene):
     """``"auto"``: 0 on an exact proxy (its lit points see the sun), 0.6 m on one that shades its lit points."""
-    from mvintrinsic.caster import AUTO_COMPLETION_DISTANCE, choose_completion_distance, proxy_self_shading
+    from mvintrinsic.shadow_caster import AUTO_COMPLETION_DISTANCE, choose_completion_distance, proxy_self_shading
 
     direction = sun(SUN_AZIMUTH, SUN_ELEVATION)
     lit = ~scene.exact_shadow(direction) & scene.hit

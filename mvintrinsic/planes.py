@@ -112,7 +112,7 @@ class PlaneConfig:
 
 @dataclass(frozen=True, eq=False)
 class Planes:
-    """Planes ``n . x + c = 0`` in the world frame (:func:`detect_planes`).
+    """Planes ``n @ x + c = 0`` in the world frame (:func:`detect_planes`).
 
     Parameters
     ----------

@@ -3,7 +3,8 @@
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
                                        | --proxy-loss | --error-split | --sky-pixels
                                        | --lost-occluders | --sun-radiance | --true-labels]
-                                       [--relight-config JSON] [--out benchmarks/results/relight.json]
+                                       [--relight-config JSON] [--decompose-config JSON] [--no-caster-study]
+                                       [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
 
 Scenes: the embedded demo (240x180, 6 views, relit tags ``az+15`` and ``el+10``) by default and
@@ -58,6 +59,11 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
 and studies alike, from the package's defaults (the report's ``config`` records the result): how a
 run with an option is reproduced. A keyword a row or study sets itself (e.g. ``--timing``'s
 ``lost_occluders``, a ``caster_study`` variant's option) wins over the override.
+
+``--decompose-config '{"step1": {"planes": null}}'`` (a JSON object of :class:`mvintrinsic.Config` keys, nested
+as :meth:`~mvintrinsic.Config.from_dict` reads them) changes every decomposition the run makes (row (e) and the
+studies' pipelines; the report's ``decompose_config`` records it); ``--no-caster-study`` skips the caster study
+of a main run (most of its time) where only the rows are wanted.
 
 ``--sky-pixels`` only compares the colours :attr:`~mvintrinsic.relight.RelightConfig.sky_pixels` gives
 the sky pixels, by :func:`sky_psnr` (:func:`sky_pixels_scene`).
@@ -184,6 +190,31 @@ BOUND_ROWS = ("input", "gt_mesh", "gt_caster", "pipeline", "gt_truth", "gt_best"
 CONFIG_OVERRIDES: dict = {}
 
 
+#: ``--decompose-config``: a (partial) nested :class:`mvintrinsic.Config` mapping for every decomposition this
+#: benchmark makes (row (e) and the studies' pipelines), e.g. ``{"step1": {"planes": null}}``; empty: the package's
+#: defaults. The report's ``decompose_config`` records it.
+DECOMPOSE_OVERRIDES: dict = {}
+#: ``--no-caster-study``: skip :func:`caster_study` (most of a main run's time).
+SKIP_CASTER_STUDY = [False]
+
+
+def pipeline_config() -> Config:
+    """The decomposition's :class:`mvintrinsic.Config`: the defaults under :data:`DECOMPOSE_OVERRIDES`."""
+    return Config.from_dict(DECOMPOSE_OVERRIDES)
+
+
+def _parse_decompose_overrides(text: str | None) -> dict:
+    """``--decompose-config``'s JSON object, checked by :meth:`mvintrinsic.Config.from_dict` before any scene is read."""
+    if not text:
+        return {}
+    try:
+        options = json.loads(text)
+        Config.from_dict(options)
+    except ValueError as error:  # JSONDecodeError is a ValueError
+        raise SystemExit(f"--decompose-config: {error}") from None
+    return options
+
+
 def relight_config(**options) -> RelightConfig:
     """:class:`~mvintrinsic.relight.RelightConfig` with ``options`` over :data:`CONFIG_OVERRIDES`."""
     return RelightConfig(**{**CONFIG_OVERRIDES, **options})
@@ -252,7 +283,7 @@ def sky_pixels_scene(folder: Path) -> dict:
     """
     scene, tags, sky_mask = _relit_scene(folder, "--sky-pixels")
     tracer = Tracer(scene.proxy)
-    result = decompose(scene, tracer=tracer)
+    result = decompose(scene, tracer=tracer, config=pipeline_config())
     out: dict = {}
     for mode in SKY_PIXEL_MODES:
         relighter = Relighter(result, scene, config=relight_config(sky_pixels=mode), tracer=tracer)
@@ -378,7 +409,7 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     tracer = Tracer(scene.proxy)
     print(f"{folder.name}: decomposing {len(stems)} views", flush=True)
     start = time.perf_counter()
-    result = decompose(scene, tracer=tracer)
+    result = decompose(scene, tracer=tracer, config=pipeline_config())
     entry["decompose_seconds"] = time.perf_counter() - start
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
     quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
@@ -455,7 +486,8 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     entry["better_sky"] = {
         row: max(SKY_ADJUSTMENTS, key=lambda sky: np.mean([entry["psnr"][sky][t][row]["mean"] for t in tags]))
         for row in ROWS[1:]}
-    entry["caster_study"] = caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, agreement)
+    if not SKIP_CASTER_STUDY[0]:
+        entry["caster_study"] = caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, agreement)
     entry["agreement_points"] = len(points)
     return entry, figure
 
@@ -713,7 +745,7 @@ def lost_occluders_scene(folder: Path) -> dict:
     stems = scene.stems
     tracer = Tracer(scene.proxy)
     layers = {"gt_caster": ground_truth_decomposition(folder, views=list(stems)),
-              "pipeline": decompose(scene, tracer=tracer)}
+              "pipeline": decompose(scene, tracer=tracer, config=pipeline_config())}
     inputs = {v.stem: v.image for v in scene.views}
     mesh = MeshShadow(folder, scene)
     plain = Relighter(layers["gt_caster"], scene, config=relight_config(dropped="none"), tracer=tracer)
@@ -776,7 +808,7 @@ def sun_radiance_scene(folder: Path) -> dict:
     tracer = Tracer(scene.proxy)
     inputs = {v.stem: v.image for v in scene.views}
     truth_layers = ground_truth_decomposition(folder, views=list(stems))
-    result = decompose(scene, tracer=tracer)
+    result = decompose(scene, tracer=tracer, config=pipeline_config())
     estimate = np.asarray(result.lighting.sun_radiance, dtype=np.float64)
     true_sun = np.asarray(truth_layers.lighting.sun_radiance, dtype=np.float64)
     level = image_model.luminance(true_sun) / image_model.luminance(estimate)
@@ -862,9 +894,9 @@ def true_labels_scene(folder: Path) -> dict:
     tracer = Tracer(scene.proxy)
     inputs = {v.stem: v.image for v in scene.views}
     truth = read_ground_truth(folder, views=list(stems))
-    layers = {"pipeline": decompose(scene, tracer=tracer)}
+    layers = {"pipeline": decompose(scene, tracer=tracer, config=pipeline_config())}
     with _true_shadow_labels(truth):
-        layers["true_labels"] = decompose(scene, tracer=tracer)
+        layers["true_labels"] = decompose(scene, tracer=tracer, config=pipeline_config())
     layers["gt"] = ground_truth_decomposition(folder, views=list(stems))
     option = relight_config(lost_occluders=OccupancyConfig())
     configs = {"": relight_config(), "_option": option,
@@ -942,7 +974,7 @@ def bounds_scene(folder: Path) -> dict:
     inputs = {v.stem: v.image for v in scene.views}
     tracer = Tracer(scene.proxy)
     print(f"{folder.name}: decomposing {len(stems)} views", flush=True)
-    layers = {"gt": ground_truth_decomposition(folder, views=list(stems)), "pipeline": decompose(scene, tracer=tracer)}
+    layers = {"gt": ground_truth_decomposition(folder, views=list(stems)), "pipeline": decompose(scene, tracer=tracer, config=pipeline_config())}
     config = relight_config()
     ours = {name: Relighter(d, scene, config=config, tracer=tracer) for name, d in layers.items()}
     plain = {name: Relighter(d, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
@@ -1258,7 +1290,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
         pipeline_relighter = None
         if name in pipeline:
             start = time.perf_counter()
-            result = decompose(moved, tracer=tracer)
+            result = decompose(moved, tracer=tracer, config=pipeline_config())
             entry["decompose_seconds"] = time.perf_counter() - start
             pipeline_relighter = Relighter(result, moved, config=config, tracer=tracer)
             if proxy is scene.proxy:
@@ -1266,7 +1298,7 @@ def proxy_loss_scene(folder: Path, *, variants: Sequence[str] = PROXY_VARIANTS,
         own_layers_relighter = None
         if name.startswith("stereo"):  # the layers decomposed on the scene's own proxy, relit with the completed one
             if own_result is None:
-                own_result = decompose(scene)
+                own_result = decompose(scene, config=pipeline_config())
             own_layers_relighter = Relighter(own_result, moved, config=config, tracer=tracer)
         for tag, (direction, images, _) in tags.items():
             sun = np.asarray(direction, dtype=np.float64)
@@ -1389,14 +1421,21 @@ def main(argv: list[str] | None = None) -> int:
                         help="with --proxy-loss: merge into the report at --out instead of replacing it")
     parser.add_argument("--relight-config", default=None, metavar="JSON",
                         help='overrides of every RelightConfig the benchmark builds, e.g. \'{"support_radius": 10}\'')
+    parser.add_argument("--decompose-config", default=None, metavar="JSON",
+                        help='a partial Config for every decomposition the benchmark makes, e.g. \'{"step1": {"planes": null}}\'')
+    parser.add_argument("--no-caster-study", action="store_true", help="main run: skip the caster study")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
     args = parser.parse_args(argv)
     CONFIG_OVERRIDES.clear()
     CONFIG_OVERRIDES.update(_parse_overrides(args.relight_config))
+    DECOMPOSE_OVERRIDES.clear()
+    DECOMPOSE_OVERRIDES.update(_parse_decompose_overrides(args.decompose_config))
+    SKIP_CASTER_STUDY[0] = args.no_caster_study
     chosen = scene_folders(args)
     report = {"benchmark": "relight", "version": mvintrinsic.__version__, "cores": os.cpu_count(),
               "python": platform.python_version(), "config": dataclasses.asdict(relight_config()),
+              "decompose_config": DECOMPOSE_OVERRIDES,
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.

@@ -520,6 +520,18 @@ def test_uncertain_sheets_shade_by_belief(scene, capture):
     for visibility in (ShadowCaster(replace(caster, uncertain=flags)).sun_visibility(
             scene.points, None, direction, config=NO_BLUR, belief=0.3),):
         np.testing.assert_array_equal(visibility, certain)
+    # Half the triangles uncertain: belief times the shadow of every triangle plus (1 - belief) times the certain
+    # half's, each cast by a caster of its own (the mixed query asks the certain half only where one blocks); a ray
+    # from every pixel, as the sampling grid refines where each image varies.
+    flags[::2] = True
+    every_pixel = replace(NO_BLUR, ray_stride=1)
+    half = ShadowCaster(replace(caster, triangles=caster.triangles[~flags], uncertain=None))
+    every = ShadowCaster(caster).sun_visibility(scene.points, None, direction, config=every_pixel)
+    certain_half = half.sun_visibility(scene.points, None, direction, config=every_pixel)
+    assert 0 < (certain_half < 0.5).sum() < (every < 0.5).sum()
+    visibility = ShadowCaster(replace(caster, uncertain=flags)).sun_visibility(
+        scene.points, None, direction, config=every_pixel, belief=0.3)
+    np.testing.assert_allclose(visibility, 0.3 * every + 0.7 * certain_half, atol=1e-6)
     # Under the paper's hypothesis the proxy completes what the uncertain sheets alone would block (the box
     # stands for nothing once the caster's primitives are forgotten): 1 wherever the box shades.
     bare = replace(caster, uncertain=np.ones(len(caster.triangles), bool), proxy_primitives=np.zeros(0, np.int64))

@@ -47,7 +47,8 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
   brought into light (``dropped="light"``, the paper) or moved like every pixel (``"none"``), with the pixels the proxy does not explain relit like the
   others (``consistency=None``, the paper), each view's new shadow alone (``fusion=None``, the
   paper) and fused over every view that sees a point (``fusion="all"``), and each
-  :attr:`~mvintrinsic.relight.RelightConfig.anchor` (None, the paper; ``"shadow"``; ``"both"``); per row also the
+  :attr:`~mvintrinsic.relight.RelightConfig.anchor` (None, the paper; ``"shadow"``; ``"both"``), and the receivers'
+  normals not snapped to the proxy's planes (``planes=None``; the decomposition's layers keep theirs); per row also the
   ``agreement_interior`` at each relit sun;
 * ``mesh_visibility_iou``: row (c)'s shadow (``< 0.5``) against ``gt/relit/<tag>/sun_visibility``
   over the non-sky pixels, without and with the blur (a check of the bound);
@@ -513,7 +514,9 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 "default, fused over every view (fusion all)": relight_config(fusion="all"),
                 "default, no anchor (anchor None, the paper: v' = C(d'))": relight_config(anchor=None),
                 "default, the captured shadow the caster does not cast kept (anchor shadow)": relight_config(anchor="shadow"),
-                "default, the capture v_sun plus the caster's change (anchor both)": relight_config(anchor="both")}
+                "default, the capture v_sun plus the caster's change (anchor both)": relight_config(anchor="both"),
+                "default, the receivers' normals not snapped to the planes (planes None; the layers keep theirs)":
+                    relight_config(planes=None)}
     for label, config in variants.items():
         out[label] = {}
         for name, decomposition in (("gt_caster", ground_truth), ("pipeline", result)):

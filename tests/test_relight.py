@@ -852,13 +852,14 @@ def test_relighting_at_the_capture_sun_with_the_layers_visibility_is_the_identit
 def test_a_dropped_clusters_shadow_stays_where_it_was(box_relit):
     # The false shadow's cluster is dropped (no occluder is known for it). After +15 degrees of
     # azimuth: "static" keeps it in the shadow layer with the layers' reflectance, "light" (the
-    # paper) in the reflectance with a lit shadow layer, "none" lets it leave.
+    # paper) in the reflectance with a lit shadow layer, "none" lets it leave. Without the anchor, which
+    # would keep any captured shadow the caster does not cast (RelightConfig.anchor, tested below).
     decomposition, box_scene = box_relit
     layers = decomposition.layers["box"]
     new_sun = (SUN_AZIMUTH + 15.0, SUN_ELEVATION)
     out, visibility = {}, {}
     for mode in DROPPED_MODES:
-        relighter = Relighter(decomposition, box_scene, config=RelightConfig(dropped=mode))
+        relighter = Relighter(decomposition, box_scene, config=RelightConfig(dropped=mode, anchor=None))
         patch = relighter.casters["box"].dropped
         visibility[mode] = relighter.visibility_at(new_sun)["box"][patch]
         out[mode] = relighter.render(new_sun)["box"][patch]
@@ -951,7 +952,7 @@ def test_the_anchor_adds_the_capture_shadow_the_caster_does_not_cast(box_relit, 
     # RelightConfig.anchor (beyond the paper): v' = clip(C(d') + a, 0, 1) with a = v_sun - C(d)
     # ("both") or min(0, v_sun - C(d)) ("shadow"), C the caster's v' without the anchor.
     decomposition, box_scene = box_relit
-    plain = Relighter(decomposition, box_scene)
+    plain = Relighter(decomposition, box_scene, config=RelightConfig(anchor=None))
     anchored = Relighter(decomposition, box_scene, config=RelightConfig(anchor=mode))
     v = plain.visibility["box"]
     at_capture = plain.visibility_at(plain.sun)["box"]
@@ -1147,7 +1148,7 @@ def test_relighter_methods_and_caster_modes(box_relit):
             assert shared == (casters == "merged" or len(relighter.stems) == 1)
             assert (len(relighter.excluded_primitives) == 0) or method == "multiview"
             assert set(relighter.timings) == {"receivers", "casters", "votes", "shadow_caster", "consistency",
-                                              "fusion", "new_sun_setup"}
+                                              "fusion", "new_sun_setup", "anchor"}  # anchor: the default's
     with pytest.raises(ValueError, match="method"):
         RelightConfig(method="exact")
     with pytest.raises(ValueError, match="casters"):
@@ -1224,12 +1225,13 @@ def test_fusion_averages_the_new_shadow_over_the_views_that_see_a_point(scene):
     patch = (slice(60, 68), slice(14, 24))
     decomposition, two = two_view_box(scene, direction, patch)
     moved = sun(SUN_AZIMUTH + 40.0, SUN_ELEVATION - 15.0)
-    alone = Relighter(decomposition, two, config=RelightConfig(fusion=None))
+    # Without the anchor (RelightConfig.anchor, applied after the fusion and tested on its own).
+    alone = Relighter(decomposition, two, config=RelightConfig(fusion=None, anchor=None))
     own = alone.visibility_at(moved)
     links = _shared_receivers(two.views, alone.receivers, alone._hits)
     lit = {s: (alone.visibility[s] >= 0.5).ravel() for s in alone.stems}
     for mode in ("all", "capture"):
-        fused = Relighter(decomposition, two, config=RelightConfig(fusion=mode)).visibility_at(moved)
+        fused = Relighter(decomposition, two, config=RelightConfig(fusion=mode, anchor=None)).visibility_at(moved)
         for a, b in (("a", "b"), ("b", "a")):
             [(k, mine, theirs)] = links[a]
             assert two.views[k].stem == b and len(mine) > 1000  # the ground and the box, seen by both

@@ -51,7 +51,12 @@ and the image model of Eq. (1) is evaluated at the new sun ``d'``:
 * pixels the proxy does not explain (beyond the paper, :attr:`RelightConfig.consistency`) keep
   their capture ``v_sun`` at every sun (below);
 * one shadow in every view (beyond the paper, :attr:`RelightConfig.fusion`): a pixel's new
-  ``v'`` is averaged with the other views' at the pixels that see the same point (below).
+  ``v'`` is averaged with the other views' at the pixels that see the same point (below);
+* the capture anchors the new shadow (beyond the paper, :attr:`RelightConfig.anchor`, ``"shadow"`` by
+  default): ``v' = clip(C(d') + min(0, v_sun - C(d)), 0, 1)`` with ``C`` the caster's fused ``v'``, so a
+  captured shadow the caster does not cast stays where it was (``docs/relight.md``, "The anchor");
+* the receivers' normals on the proxy's planes (beyond the paper, :attr:`RelightConfig.planes`), as
+  Step 1's (:mod:`.planes`).
 
 At the capture sun with the (fixed) visibility of the layers every factor is 1 and every
 correction 0: the relit image is ``R S_tot``, the decomposition's reconstruction, exactly
@@ -498,7 +503,8 @@ class Relighter:
         ``config.completion_distance``) and blurred by ``config.blur``; the pixels the proxy does
         not explain (:attr:`unexplained`) keep their capture :attr:`visibility`; then, with
         ``config.fusion``, every pixel's value is averaged with the other views' that see its
-        receiver point (module docstring, "One shadow in every view").
+        receiver point (module docstring, "One shadow in every view"); then, with ``config.anchor``,
+        the capture's anchor is added (:attr:`RelightConfig.anchor`).
 
         Parameters
         ----------

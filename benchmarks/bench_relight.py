@@ -43,7 +43,8 @@ handling of the dropped clusters belongs to the caster). Every row is computed f
 * ``caster_study``: rows (d) and (e) under other :class:`~mvintrinsic.relight.RelightConfig`
   options, one changed at a time from the default: the merged caster, the paper's checks
   (``method="paper"``, own and merged casters), no completion distance, ``min_proxy_hits`` 0
-  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, no blur, the dropped clusters
+  (keep every cluster of >= 100 pixels), ``min_cluster`` 20, the paper's cluster rule alone
+  (``support_radius=0``, without the supported parts), no blur, the dropped clusters
   brought into light (``dropped="light"``, the paper) or moved like every pixel (``"none"``), with the pixels the proxy does not explain relit like the
   others (``consistency=None``, the paper), each view's new shadow alone (``fusion=None``, the
   paper) and fused over every view that sees a point (``fusion="all"``), and each
@@ -505,7 +506,7 @@ def caster_study(scene, tracer, ground_truth, result, tags, inputs, sky_mask, ag
                 "default, completion_distance 0": relight_config(completion_distance=0.0),
                 "default, min_proxy_hits 0": relight_config(min_proxy_hits=0.0),
                 "default, min_cluster 20": relight_config(min_cluster=20),
-                "default, the supported parts too (support_radius 10)": relight_config(support_radius=10),
+                "default, the paper's cluster rule alone (support_radius 0)": relight_config(support_radius=0),
                 "default, no blur": relight_config(blur=0.0),
                 "default, dropped clusters brought into light (dropped light, the paper)": relight_config(dropped="light"),
                 "default, dropped clusters moved like every pixel (dropped none)": relight_config(dropped="none"),

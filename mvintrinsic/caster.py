@@ -40,7 +40,7 @@ Deviations from the paper, with their reasons
 * **Cluster filtering before filling**: no kept pixel borrows a dropped cluster's distance; a
   cluster with no proxy hit is always dropped.
 * **Occluders the proxy lost** (by default, :attr:`RelightConfig.lost_occluders`, :mod:`.photo_occupancy`).
-* **Supported parts of the dropped clusters** (an option, :attr:`RelightConfig.support_radius`,
+* **Supported parts of the dropped clusters** (by default, :attr:`RelightConfig.support_radius`,
   :mod:`.shadow_clusters`): their triangles are :attr:`Caster.uncertain`.
 * **Ray offset.** Rays start ``ray_offset`` metres (0.02, a TSDF voxel, as Step 1) toward the sun from the receiver
   points, against self-intersection; the caster distances are measured from the receiver point itself.
@@ -249,11 +249,12 @@ class RelightConfig:
         Pixels; a part of a shadow cluster the paper's rule drops is lifted when, within this radius, the share of
         its pixels whose rays find an occluder reaches the rule's (:func:`~mvintrinsic.shadow_clusters.supported_parts`:
         Step 3's labels join true shadows with unsupported ones into clusters the rule drops whole); >= 0, 0: the
-        paper's rule alone (default). With ``lost_occluders``, the parts and their sheets are the expected image over
-        the shadow and the paper's dropping (``belief``). Beyond the paper; 10 gains 0.13 dB on row (d) and 0.28 on
-        row (e) on average (five 480x360 scenes, 22 scene-suns; -0.15 to +1.51) but each new sun takes 0.073-0.110 s
-        per view at 1000x750 depending on the machine's state, against 0.057-0.080 without: over the 0.1 s budget at
-        times, so an option (``docs/relight.md``, "Supported parts of the shadow clusters").
+        paper's rule alone. With ``lost_occluders``, the parts and their sheets are the expected image over
+        the shadow and the paper's dropping (``belief``). Beyond the paper; 10 by default since 2026-12-07: with the
+        other defaults of that day, row (e) - (a) at +-15 degrees 2.74 -> 3.07 dB and row (d) - (c) -2.81 -> -2.61
+        (five 480x360 scenes; row (e) -0.10..+1.70 dB over 22 scene-suns, street_s2 -0.10..+0.04), each new sun
+        0.081-0.099 s per view at 1000x750 against 0.059-0.072 with 0 (two or three runs, alone on the machine; other
+        earlier sessions' machine states up to 0.110 s) (``docs/relight.md``, "Supported parts of the shadow clusters").
     anchor : {"shadow", "both"} or None
         How the capture ``v_sun`` anchors the new shadow layer (:data:`ANCHOR_MODES`; beyond the paper). The caster's
         own shadow at the capture sun, ``C(d)``, is not the photograph's (a shadow it cannot cast, an edge a pixel off,
@@ -289,7 +290,7 @@ class RelightConfig:
     consistency: float | None = 0.3
     fusion: str | None = "capture"
     lost_occluders: OccupancyConfig | None = LOST_OCCLUDERS
-    support_radius: int = 0
+    support_radius: int = 10
     anchor: str | None = "shadow"
 
     def __post_init__(self) -> None:

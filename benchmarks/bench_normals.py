@@ -38,9 +38,9 @@ import numpy as np
 import mvintrinsic
 from mvintrinsic.cli import demo_scene_path
 from mvintrinsic.io import load_scene, read_proxy, write_json
-from mvintrinsic.planes import PlaneConfig, detect_planes
+from mvintrinsic.planes import PlaneConfig, detect_planes, planar_normals
 from mvintrinsic.raytrace import Tracer, smooth_normals
-from mvintrinsic.relight import receiver_depth, receiver_normals
+from mvintrinsic.shadow_caster import _cast_pixels, _pixel_normals
 
 ROOT = Path(__file__).resolve().parents[1]
 #: A pixel is explained when its proxy depth is within this share of the exact mesh's.
@@ -55,7 +55,12 @@ def _angles(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 def normals_scene(folder: Path) -> dict:
-    """The normal errors of one scene (module docstring)."""
+    """The normal errors of one scene (module docstring).
+
+    The vertex normals of each variant are computed once per scene, and each view's pixel rays are cast once
+    per mesh; the pixel normals are interpolated as :func:`mvintrinsic.relight.receiver_normals` does
+    (the same helpers), so the figures are those of the relighter's receivers.
+    """
     scene = load_scene(folder)
     mesh_tracer = Tracer(read_proxy(folder / "gt" / "mesh.ply"))
     tracer = Tracer(scene.proxy)
@@ -63,27 +68,28 @@ def normals_scene(folder: Path) -> dict:
     smoothed = smooth_normals(scene.proxy, SMOOTHING)
     seconds_smoothing = time.perf_counter() - start
     start = time.perf_counter()
-    planes = detect_planes(scene.proxy.vertices, smoothed, config=PlaneConfig())
+    config = PlaneConfig()
+    planes = detect_planes(scene.proxy.vertices, smoothed, config=config)
+    snapped = planar_normals(scene.proxy.vertices, smoothed, planes, config=config)[0]
     seconds_planes = time.perf_counter() - start
-    variants = {"raw": {"normal_smoothing": 0.0}, "smoothed": {"normal_smoothing": SMOOTHING},
-                "planes": {"normal_smoothing": SMOOTHING, "planes": PlaneConfig()}}
+    # raw: normal_smoothing 0; smoothed: Step 1's smoothing (planes=None); planes: smoothed and snapped (default).
+    variants = {"raw": scene.proxy.normals, "smoothed": smoothed, "planes": snapped}
     pooled: dict[str, list] = {name: [] for name in variants}
     cosines: dict[str, list] = {name: [] for name in variants}
     explained_share = []
     sun = scene.sun.direction
     for view in scene.views:
         camera = view.camera
-        depth, hit = receiver_depth(camera, tracer)
-        true_depth, true_hit = receiver_depth(camera, mesh_tracer)
-        hits = mesh_tracer.intersect(camera.center, camera.pixel_rays())
-        truth = hits.normals.reshape(*view.shape, 3).astype(np.float64)
+        hits, depth, hit = _cast_pixels(camera, tracer)
+        mesh_hits, true_depth, true_hit = _cast_pixels(camera, mesh_tracer, name="gt/mesh.ply")
+        truth = mesh_hits.normals.reshape(*view.shape, 3).astype(np.float64)
         rays = camera.pixel_rays().reshape(*view.shape, 3)
         truth = np.where((np.einsum("hwc,hwc->hw", truth, rays) > 0)[..., None], -truth, truth)  # toward the camera
         explained = hit & true_hit & (np.abs(depth - true_depth) <= DEPTH_TOLERANCE * true_depth)
         explained_share.append(float(explained.mean()))
         true_cos = np.maximum(0.0, truth[explained] @ sun)
-        for name, options in variants.items():
-            normals = receiver_normals(camera, tracer, **options)[explained]
+        for name, at_vertices in variants.items():
+            normals = _pixel_normals(tracer, hits, view.shape, at_vertices)[explained]
             pooled[name].append(_angles(normals, truth[explained]))
             cosines[name].append(np.abs(np.maximum(0.0, normals @ sun) - true_cos))
     out: dict = {"views": len(scene.views), "size": f"{scene.views[0].shape[1]}x{scene.views[0].shape[0]}",

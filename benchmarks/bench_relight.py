@@ -411,10 +411,12 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     tracer = Tracer(scene.proxy)
     print(f"{folder.name}: decomposing {len(stems)} views", flush=True)
     start = time.perf_counter()
-    result = decompose(scene, tracer=tracer, config=pipeline_config())
+    decompose_config = pipeline_config()
+    result = decompose(scene, tracer=tracer, config=decompose_config)
     entry["decompose_seconds"] = time.perf_counter() - start
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
-    quantities = carry_to_pixels(scene, step1(scene, tracer=tracer, rng=Config().seed), tracer)
+    quantities = carry_to_pixels(scene, step1(scene, config=decompose_config.step1, tracer=tracer,
+                                                   rng=decompose_config.seed), tracer)
     points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
     mesh = MeshShadow(folder, scene)
 

@@ -253,15 +253,16 @@ class RelightConfig:
         the shadow and the paper's dropping (``belief``). Beyond the paper; 10 by default since 2026-12-07: with the
         other defaults of that day, row (e) - (a) at +-15 degrees 2.74 -> 3.07 dB and row (d) - (c) -2.81 -> -2.61
         (five 480x360 scenes; row (e) -0.10..+1.70 dB over 22 scene-suns, street_s2 -0.10..+0.04), each new sun
-        0.081-0.099 s per view at 1000x750 against 0.059-0.072 with 0 (two or three runs, alone on the machine; other
-        earlier sessions' machine states up to 0.110 s) (``docs/relight.md``, "Supported parts of the shadow clusters").
+        0.081-0.099 s per view at 1000x750 against 0.059-0.072 with 0 (runs alone on the machine; slower machine
+        states of earlier sessions up to 0.110 s; ``docs/relight.md``, "Supported parts of the shadow clusters").
     anchor : {"shadow", "both"} or None
         How the capture ``v_sun`` anchors the new shadow layer (:data:`ANCHOR_MODES`; beyond the paper). The caster's
         own shadow at the capture sun, ``C(d)``, is not the photograph's (a shadow it cannot cast, an edge a pixel off,
         the blur); ``v' = clip(C(d') + a, 0, 1)`` with the anchor ``a = v_sun - C(d)`` (``"both"``: at the capture sun
         ``v'`` is ``v_sun``, and only the caster's *change* moves a shadow) or ``a = min(0, v_sun - C(d))``
         (``"shadow"``: a captured shadow the caster does not cast stays, as a dropped cluster's does with
-        ``dropped="static"``, and the caster only lightens what it shades). None: ``v' = C(d')`` (the paper).
+        ``dropped="static"``; where the caster shades more than the photograph, it is trusted). None: ``v' = C(d')``
+        (the paper).
         Default ``"shadow"`` by measurement against None, with the other defaults (Step 1 and the relighter on the
         proxy's planes), on five 480x360 scenes and dev_courtyard (26 scene-suns; ``docs/relight.md``, "The anchor"):
         the full pipeline's row (e) of ``benchmarks/bench_relight.py`` +0.01 to +0.28 dB at 22, -0.01 to -0.11 at four

@@ -569,13 +569,6 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
     rendered (:meth:`~mvintrinsic.relight.Relighter.render`: new visibility and shading). With
     ``size`` (W, H) the views and layers are first resampled to it (:func:`upscaled`). ``config``:
     the relighter's (default ``RelightConfig()``; ``--timing``: as ``--timed-occluders`` says).
-
-    The relighter is built twice and the second build is the one reported (``build_per_view``, with
-    its steps); the first (``first_build_per_view``) also pays the process's first touch of the
-    memory it allocates. On the benchmark machine (a virtual machine whose host takes back freed
-    memory) a first touch cost 7-10 s per GB after a long benchmark had run (2 GB of NumPy ones:
-    20.8 s, then 0.22 s; 8 GB: 58 s; session of 2026-12-07), which put 0.7-2.6 s per view on the
-    builds of one run: a property of the machine, not of the code, as the render's warm-up below is.
     """
     scene = load_scene(folder)
     stems = scene.stems
@@ -583,10 +576,6 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
     if size is not None:
         scene, ground_truth = upscaled(scene, ground_truth, size)
-    start = time.perf_counter()
-    relighter = Relighter(ground_truth, scene, tracer=tracer, config=config)
-    first_build = time.perf_counter() - start
-    del relighter
     start = time.perf_counter()
     relighter = Relighter(ground_truth, scene, tracer=tracer, config=config)
     build = time.perf_counter() - start
@@ -601,8 +590,7 @@ def time_scene(folder: Path, n_suns: int = 5, size: tuple[int, int] | None = Non
     out = {"size": f"{w}x{h}", "views": len(stems), "lost_occluders": relighter.config.lost_occluders is not None,
            "occupancy": (None if relighter.config.lost_occluders is None
                          else dataclasses.asdict(relighter.config.lost_occluders)), "proxy_triangles": len(scene.proxy.triangles),
-           "first_build_per_view": first_build / len(stems), "build_per_view": build / len(stems),
-           **{k: v / len(stems) for k, v in relighter.timings.items()},
+           "build_per_view": build / len(stems), **{k: v / len(stems) for k, v in relighter.timings.items()},
            "render_per_sun_per_view": per_sun / len(stems), "suns": n_suns}
     print(f"{folder.name}: " + " ".join(f"{k} {v:.3f}" if isinstance(v, float) else f"{k} {v}" for k, v in out.items()),
           flush=True)

@@ -470,19 +470,28 @@ def shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray],
         Per view stem, per other view: its index in ``views``, the flat indices of the view's
         pixels (ascending) and those of the other view's pixels that see them.
     """
+    links = _links_task(views, receivers, depth, depth_tolerance)
+    return {view.stem: links(view) for view in views}
+
+
+def _links_task(views: Sequence[View], receivers: Mapping[str, np.ndarray], depth: Mapping[str, np.ndarray],
+                depth_tolerance: float) -> Callable[[View], list[tuple[int, np.ndarray, np.ndarray]]]:
+    """:func:`shared_receivers` as a task: ``task(view)`` is one view's list, and the views' tasks are independent
+    (they may run at once)."""
     depths = {v.stem: np.asarray(depth[v.stem], dtype=np.float64).reshape(v.shape) for v in views}
     usable = {v.stem: v.mask & np.isfinite(depths[v.stem]) for v in views}
-    out = {}
-    for view in views:
+
+    def links(view: View) -> list[tuple[int, np.ndarray, np.ndarray]]:
         own = np.flatnonzero(np.isfinite(depths[view.stem]))
         points = np.asarray(receivers[view.stem], dtype=np.float64).reshape(-1, 3)[own]
-        links = []
+        out = []
         for k, other in enumerate(views):
             if other.stem != view.stem:
                 seen, flat = seen_pixels(other.camera, depths[other.stem], usable[other.stem], points, depth_tolerance)
-                links.append((k, own[seen], flat[seen]))
-        out[view.stem] = links
-    return out
+                out.append((k, own[seen], flat[seen]))
+        return out
+
+    return links
 
 
 def nearest_colour(views: Sequence[View], gains: Mapping[str, np.ndarray] | None,
@@ -502,10 +511,17 @@ def nearest_colour(views: Sequence[View], gains: Mapping[str, np.ndarray] | None
         own_logs = logs[view.stem]
         nearest = np.full(len(own_logs), np.inf, dtype=np.float32)
         for k, own, theirs in shared[view.stem]:  # a pixel appears at most once per other view
-            distance = np.median(np.abs(own_logs[own] - logs[views[k].stem][theirs]), axis=-1)
+            distance = _median3(np.abs(own_logs[own] - logs[views[k].stem][theirs]))
             nearest[own] = np.minimum(nearest[own], distance)
         out[view.stem] = nearest.reshape(view.shape)
     return out
+
+
+def _median3(values: np.ndarray) -> np.ndarray:
+    """The median of each row of ``values`` (N, 3): ``np.median(values, axis=-1)``'s numbers (the middle value
+    itself; NaN where a value is), by minima and maxima instead of a partition (5x faster)."""
+    a, b, c = values[:, 0], values[:, 1], values[:, 2]
+    return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
 
 
 def unexplained_pixels(known: np.ndarray, hit: np.ndarray, nearest_colour: np.ndarray,

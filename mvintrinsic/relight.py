@@ -133,13 +133,14 @@ References
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from types import MappingProxyType
 from typing import Any
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from ._cluster import _as_client, _Rebuilt, _ViewTasks
 from ._validation import as_array, as_count, config_or_default, describe
@@ -195,6 +196,7 @@ from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene
 from .shadow_caster import (
     ShadowCaster,
+    _cast_pixels,
     _completion_distance,
     _fuse,
     _fusion_matrices,
@@ -274,11 +276,12 @@ class Relighter:
     batch : int, optional
         Rays per Embree call.
     threads : int, optional
-        Views :meth:`render` works on at once in this process (default 2; 1: one after the other).
-        Embree already casts each view's rays on every core; the rest of a new sun (blur, fusion,
-        shading, composition) is NumPy and SciPy on one core per view. Two threads (and the OpenCV
-        blur) took a new sun at 1000x750 from 0.088-0.106 to 0.052-0.075 s per view on two cores
-        (``docs/relight.md``, "Speed"); the images are identical to one thread's.
+        Views worked on at once in this process, when building and by :meth:`render` (default 2; 1:
+        one after the other). Embree already casts each view's rays on every core; the rest is
+        NumPy and SciPy on one core per view. Two threads (and the OpenCV blur) took a new sun at
+        1000x750 from 0.088-0.106 to 0.052-0.075 s per view on two cores, and the building (with
+        one BLAS thread) from 6.1-6.3 to 3.7 s per view on street_s0 (``docs/relight.md``, "Speed");
+        the casters and images are identical to one thread's.
     client : distributed.Client, optional
         A dask.distributed client: :meth:`render` then runs one task per view on its cluster
         (``docs/distributed.md``). Building stays here; each view's inputs of a new sun (about
@@ -344,6 +347,15 @@ class Relighter:
     def __init__(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None = None,
                  tracer: Tracer | None = None, batch: int = DEFAULT_BATCH, client: Any = None,
                  threads: int = 2) -> None:
+        # One BLAS thread while building (the same numbers: OpenBLAS splits the rows of each product among its
+        # threads): the building's BLAS products are (N, 3) x (3, 3) (Camera.world_to_camera), and the second
+        # OpenBLAS thread spinning after each took a core from these threads and Embree's ("Speed").
+        with threadpool_limits(limits=1, user_api="blas"):
+            self._build(decomposition, scene, config=config, tracer=tracer, batch=batch, client=client,
+                        threads=threads)
+
+    def _build(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None, tracer: Tracer | None,
+               batch: int, client: Any, threads: int) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
         config = config_or_default(config, RelightConfig)
         client = _as_client(client)
@@ -366,7 +378,7 @@ class Relighter:
         self._batch = batch
         timings = {"receivers": 0.0, "casters": 0.0, "votes": 0.0, "shadow_caster": 0.0, "consistency": 0.0}
         self._vertex_normals, receivers, normals, hits, cosine, known, links, nearest = _view_geometry(
-            decomposition, scene, config, tracer, batch, capture, timings)
+            decomposition, scene, config, tracer, batch, capture, timings, run=self._per_view)
         reflectance, visibility, casters, lit_points, rescued = {}, {}, {}, {}, {}
         start = time.perf_counter()
         occupancy, rule = None, config  # with lost_occluders (beyond the paper) its cluster rule, min_hits;
@@ -378,9 +390,11 @@ class Relighter:
         # expected image over the two hypotheses (their shadow is real, or a mislabelling), the parts' new shadows too.
         self._belief = config.lost_occluders.belief if occupancy is not None else 1.0
         timings["consistency"] += time.perf_counter() - start
-        for index, view in enumerate(scene.views):
+        start = time.perf_counter()
+
+        def view_caster(index: int) -> tuple:  # one view's caster and layers (views at once: self._threads)
+            view = scene.views[index]
             stem, camera, hit = view.stem, view.camera, hits[view.stem].hit.reshape(view.shape)
-            start = time.perf_counter()
             layers = decomposition.layers[stem]
             labels = layers.shadow_labels
             shadow = shadow_pixels(labels, layers.visibility, tau_s=config.tau_s)
@@ -388,23 +402,27 @@ class Relighter:
             # with v_sun < tau_s outside its kept clusters are dropped (relit as config.dropped says).
             lifted = shadow if config.caster_pixels == "paper" else shadow_pixels(labels, None)
             lit = hit & ~shadow & (labels == SHADOW_LABELS["lit"])
-            lit_points[stem] = receivers[stem][lit]
             missed = np.zeros(view.shape, dtype=bool)  # shadow pixels whose sun ray misses the proxy
             distance = None if occupancy is None else occupancy.sun_ray_distance(index, receivers[stem], asked=missed)
-            casters[stem] = build_caster(camera, lifted, receivers[stem], capture, tracer, lit=lit, up=up,
-                                         config=rule, batch=batch, occluder_distance=distance)
+            caster = build_caster(camera, lifted, receivers[stem], capture, tracer, lit=lit, up=up,
+                                  config=rule, batch=batch, occluder_distance=distance)
             if config.caster_pixels == "labels":
-                casters[stem] = replace(casters[stem], dropped=shadow & ~casters[stem].shadow)
-            timings["casters"] += time.perf_counter() - start
+                caster = replace(caster, dropped=shadow & ~caster.shadow)
             r, v = layers.reflectance, layers.visibility
-            dropped = casters[stem].dropped
-            if config.dropped == "light" and dropped.any():
-                r, v = _into_light(layers, r, v, dropped)
-            reflectance[stem] = _read_only(np.array(r, dtype=np.float32))
-            visibility[stem] = _read_only(np.array(v, dtype=np.float32))
+            if config.dropped == "light" and caster.dropped.any():
+                r, v = _into_light(layers, r, v, caster.dropped)
+            saved = None
             if self._belief < 1:  # kept, and dropped by the paper's rule; and the supported parts
-                rescued[stem] = casters[stem].shadow & ~kept_clusters(lifted, lifted & ~missed, config.min_cluster,
-                                                                      config.min_proxy_hits)[0] | casters[stem].parts
+                saved = caster.shadow & ~kept_clusters(lifted, lifted & ~missed, config.min_cluster,
+                                                       config.min_proxy_hits)[0] | caster.parts
+            return (receivers[stem][lit], caster, _read_only(np.array(r, dtype=np.float32)),
+                    _read_only(np.array(v, dtype=np.float32)), saved)
+
+        for stem, (points, caster, r, v, saved) in self._per_view(view_caster, range(len(scene.views))).items():
+            lit_points[stem], casters[stem], reflectance[stem], visibility[stem] = points, caster, r, v
+            if saved is not None:
+                rescued[stem] = saved
+        timings["casters"] += time.perf_counter() - start
 
         start = time.perf_counter()
         excluded = np.zeros(0, dtype=np.int64)
@@ -413,9 +431,9 @@ class Relighter:
         self.completion_distance, self.self_shading = 0.0, None
         if config.method == "multiview":
             # Every view's lit pixels vote against every view's caster and against the proxy.
-            for stem in self.stems:
-                others = [lit_points[s] for s in self.stems if s != stem]
-                casters[stem] = _revote(casters[stem], lit_points[stem], others, capture, config, batch)
+            casters.update(self._per_view(lambda stem: _revote(
+                casters[stem], lit_points[stem], [lit_points[s] for s in self.stems if s != stem], capture, config,
+                batch)))
             # One cast of the lit points' capture-sun rays: the proxy primitives they contradict, and
             # how near the proxy shades them (completion_distance="auto").
             first_t, first_primitive = capture_first_hits(tracer, [lit_points[s] for s in self.stems], capture,
@@ -448,12 +466,13 @@ class Relighter:
             explained = {s: hits[s].hit.reshape(known[s].shape) & known[s] for s in self.stems}
             for s, flagged in unexplained.items():
                 explained[s] = explained[s] & ~flagged
-            self._fusion = _fusion_matrices(scene.views, links, explained, visibility, config.fusion)
+            self._fusion = _fusion_matrices(scene.views, links, explained, visibility, config.fusion,
+                                            run=self._per_view)
         timings["fusion"] = time.perf_counter() - start
         # The sun-independent inputs of every new sun, once (module docstring, "Speed").
         start = time.perf_counter()
         self._turbidity = lighting.sky.turbidity if lighting.sky is not None else config.turbidity
-        self._new_sun = {s: self._prepare_new_sun(s, cosine[s], excluded, rescued.get(s)) for s in self.stems}
+        self._new_sun = self._per_view(lambda s: self._prepare_new_sun(s, cosine[s], excluded, rescued.get(s)))
         timings["new_sun_setup"] = time.perf_counter() - start
         # RelightConfig.anchor (beyond the paper): the capture v_sun minus the caster's own v' at the capture sun.
         self._anchor: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -531,12 +550,14 @@ class Relighter:
             flat[index] = np.clip(flat[index] + offset, 0.0, 1.0)
         return visibility
 
-    def _per_view(self, task: Callable[[str], Any]) -> dict[str, Any]:
-        """``{stem: task(stem)}`` in scene order, on the constructor's ``threads``."""
+    def _per_view(self, task: Callable[[Any], Any], items: Iterable[Any] | None = None) -> dict[str, Any]:
+        """``{stem: task(item)}`` in scene order, on the constructor's ``threads``; ``items`` one per view in
+        the scene's order (default: the stems)."""
+        items = list(self.stems if items is None else items)
         if self._threads == 1 or len(self.stems) == 1:
-            return {s: task(s) for s in self.stems}
+            return dict(zip(self.stems, map(task, items), strict=True))
         with ThreadPoolExecutor(max_workers=min(self._threads, len(self.stems))) as pool:
-            return dict(zip(self.stems, pool.map(task, self.stems), strict=True))
+            return dict(zip(self.stems, pool.map(task, items), strict=True))
 
     def proxy_visibility(self, sun: object) -> dict[str, np.ndarray]:
         """The proxy's own shadow at a new sun, as Step 1 computes it (paper Sec. 4; Fig. 11, right).
@@ -560,8 +581,8 @@ class Relighter:
         vertex = proxy_vertex_visibility(proxy.vertices, self._vertex_normals, direction, self.tracer,
                                          ray_offset=self.config.ray_offset, batch=self._batch)
         out = {}
-        for view in self.scene.views:
-            hits = self._hits[view.stem]
+        for view in self.scene.views:  # the camera rays cast again: the relighter keeps only their hit and t
+            hits, _, _ = _cast_pixels(view.camera, self.tracer, self._batch)
             values = self.tracer.interpolate(vertex[:, None], hits).reshape(*view.shape, 1)
             values = nearest_fill(values, hits.hit.reshape(view.shape))[..., 0]
             out[view.stem] = np.clip(values, 0.0, 1.0).astype(np.float32)

@@ -215,12 +215,18 @@ def test_the_rescued_pixels_mix_the_two_hypotheses(world):
 
 
 def test_the_views_relight_on_two_threads_as_on_one(world):
-    # Relighter(threads=2) works on two views at once: the same images and layers to the bit,
-    # the rescued pixels' mixing included.
+    # Relighter(threads=2) builds and relights two views at once: the same casters, images and
+    # layers to the bit, the rescued pixels' mixing included.
     scene, decomposition = world[1], world[2]
     config = RelightConfig(lost_occluders=OccupancyConfig(min_hits=0.3))
     one, two = (Relighter(decomposition, scene, config=config, threads=n) for n in (1, 2))
     assert two.rescued
+    for s in scene.stems:
+        for name in ("receivers", "normals", "visibility", "reflectance", "unexplained", "rescued"):
+            assert np.array_equal(getattr(one, name).get(s), getattr(two, name).get(s)), (name, s)
+        for name in ("shadow", "dropped", "parts"):
+            assert np.array_equal(getattr(one.casters[s], name), getattr(two.casters[s], name)), (name, s)
+        assert np.array_equal(one.casters[s].vertices, two.casters[s].vertices)
     for sun in (MOVED, CAPTURE):
         a, b = one.render(sun), two.render(sun)
         assert list(a) == list(b) == list(scene.stems)

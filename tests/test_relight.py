@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 from conftest import ground_and_box_mesh, look_at
 from scipy import ndimage
+from threadpoolctl import threadpool_info
 
 from mvintrinsic import Proxy
 from mvintrinsic.camera import Camera
@@ -1301,3 +1302,13 @@ def test_the_banded_composition_is_eq_1_to_the_bit(height, per_pixel_sky, fill):
         np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-6)
     else:
         np.testing.assert_array_equal(image, expected)
+
+
+def test_building_leaves_the_blas_threads_as_they_were(box_relit):
+    # The relighter builds on one BLAS thread (threadpoolctl; docs/relight.md "Speed") and gives the
+    # process its BLAS threads back afterwards.
+    decomposition, box_scene = box_relit
+    before = [(i["internal_api"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"]
+    assert before  # NumPy's BLAS is seen
+    Relighter(decomposition, box_scene)
+    assert [(i["internal_api"], i["num_threads"]) for i in threadpool_info() if i["user_api"] == "blas"] == before

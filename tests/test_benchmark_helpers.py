@@ -368,3 +368,24 @@ def test_observable_summary_takes_the_gap_to_row_c_at_the_15_degree_suns():
     # seen_2_static (seen - 2.5): gaps 3.5 and 2.5, both above the 2 dB target
     assert summary["seen_2_static"]["max"] == 3.5
     assert summary["seen_2_static"]["above_target"] == 2
+
+
+def test_relight_paired_reads_a_checkouts_per_sun_code_and_names_a_bad_reference(tmp_path):
+    from pathlib import Path
+
+    import bench_relight_paired
+
+    import mvintrinsic.shadow_caster as shadow_caster
+
+    root = Path(shadow_caster.__file__).resolve().parents[1]
+    code = bench_relight_paired.reference_code(root)  # this checkout as its own reference
+    assert set(code) == {"_strided", "_fuse", "_visibility"}
+    assert code["_strided"] is not shadow_caster._strided  # compiled again, in a namespace of its own
+    truth = np.arange(12).reshape(3, 4) % 3 == 0
+    np.testing.assert_array_equal(code["_strided"](lambda index: truth.ravel()[index], (3, 4), 1), truth.ravel())
+    with pytest.raises(FileNotFoundError, match="--reference"):
+        bench_relight_paired.reference_code(tmp_path)
+    (tmp_path / "mvintrinsic").mkdir()
+    (tmp_path / "mvintrinsic" / "shadow_caster.py").write_text("def _strided():\n    pass\n")
+    with pytest.raises(ValueError, match="_fuse"):
+        bench_relight_paired.reference_code(tmp_path)

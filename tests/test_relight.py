@@ -19,7 +19,7 @@ from threadpoolctl import threadpool_info
 
 from mvintrinsic import Proxy
 from mvintrinsic.camera import Camera
-from mvintrinsic.raytrace import Tracer, rasterize
+from mvintrinsic.raytrace import Tracer, _ray_array, rasterize
 from mvintrinsic.raytrace import sun_visibility as vertex_visibility
 from mvintrinsic.relight import (
     ANCHOR_MODES,
@@ -45,7 +45,7 @@ from mvintrinsic.relight import (
 from mvintrinsic.relit_shading import COMPOSE_ROWS, _NewSun
 from mvintrinsic.results import SHADOW_LABELS, Decomposition, IntrinsicLayers, Lighting, SkyParameters
 from mvintrinsic.scene import Scene, Sun, View
-from mvintrinsic.shadow_caster import _shared_receivers, _strided
+from mvintrinsic.shadow_caster import _offset_rays, _put_grid, _shared_receivers, _strided
 from mvintrinsic.shadow_clusters import kept_clusters, supported_parts
 from mvintrinsic.sun_position import azimuth_elevation
 
@@ -371,6 +371,42 @@ def test_strided_sampling_queries_only_where_the_image_varies():
     line = np.zeros((H, W), bool)
     line[10:60, 51] = True
     assert not _strided(lambda index: line.ravel()[index], (H, W), 2).any()
+
+
+def test_grid_writes_and_rays_are_the_fancy_index_and_ray_array_they_replace():
+    # _put_grid: slices for image[np.ix_(ys, xs)] = values, at every size (the last row or column on the
+    # grid or not); _offset_rays: the float32 rays of _ray_array(points[index] + offset, sun), bit for bit.
+    rng = np.random.default_rng(3)
+    for h, w, stride in ((7, 9, 2), (8, 10, 2), (7, 7, 3), (9, 11, 4), (5, 6, 1)):
+        ys = np.unique(np.r_[np.arange(0, h, stride), h - 1])
+        xs = np.unique(np.r_[np.arange(0, w, stride), w - 1])
+        values = rng.random((len(ys), len(xs)))
+        expected, image = rng.random((h, w)), np.zeros((h, w))
+        image[...] = expected
+        expected[np.ix_(ys, xs)] = values
+        _put_grid(image, values, stride)
+        np.testing.assert_array_equal(image, expected)
+        expected[np.ix_(ys, xs)] = 0.0
+        _put_grid(image, 0.0, stride)
+        np.testing.assert_array_equal(image, expected)
+    points = rng.normal(size=(500, 3)) * 30.0
+    index = rng.choice(500, 200)
+    sun_direction = sun(SUN_AZIMUTH, SUN_ELEVATION)
+    offset = 0.02 * sun_direction
+    np.testing.assert_array_equal(_offset_rays(points, index, offset, sun_direction.astype(np.float32)),
+                                  _ray_array(points[index] + offset, sun_direction))
+
+
+def test_completion_hits_are_first_primitive_with_misses_on_the_last_entry(scene):
+    direction = sun(SUN_AZIMUTH, SUN_ELEVATION)
+    points = scene.points.reshape(-1, 3) + 0.02 * direction
+    t, primitive = scene.tracer.first_primitive(points, direction, batch=1000)
+    rays = _ray_array(points, direction)
+    t_lean, primitive_lean = scene.tracer._completion_hits(rays, batch=1000)
+    assert t_lean.dtype == np.float32 and primitive_lean.dtype == np.int64
+    np.testing.assert_array_equal(t_lean, t)
+    np.testing.assert_array_equal(primitive_lean, np.where(primitive < 0, scene.tracer.n_primitives, primitive))
+    assert (primitive < 0).any() and (primitive >= 0).any()
 
 
 def test_first_primitive_is_intersects_distance_and_triangle(scene):

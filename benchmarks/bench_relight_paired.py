@@ -41,7 +41,8 @@ METHOD = "_visibility"
 
 def reference_code(folder: Path) -> dict:
     """``_strided``, ``_fuse`` and ``ShadowCaster._visibility`` of ``folder/mvintrinsic/shadow_caster.py``, compiled
-    in a copy of this checkout's module namespace (their other names resolve to this checkout's)."""
+    in one copy of this checkout's module namespace (so the reference's ``_visibility`` calls the reference's
+    ``_strided``; their other names resolve to this checkout's)."""
     path = folder / "mvintrinsic" / "shadow_caster.py"
     if not path.is_file():
         raise FileNotFoundError(f"--reference: no mvintrinsic/shadow_caster.py in {folder}")
@@ -57,7 +58,6 @@ def reference_code(folder: Path) -> dict:
     missing = set(FUNCTIONS + (METHOD,)) - set(found)
     if missing:
         raise ValueError(f"--reference: {path} has no {sorted(missing)}")
-    namespace["_strided"] = found["_strided"]  # the reference's _visibility calls its own _strided
     return found
 
 

@@ -372,26 +372,17 @@ class Tracer:
                               batch: int = DEFAULT_BATCH) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`first_primitive` of Embree's rays as they are: ``rays`` (N, 6) float32, C-contiguous, each row
         an origin and a direction (world frame), read without a copy; ``t`` counts ``t_min`` more."""
-        n = len(rays)
-        t = np.full(n, np.inf, dtype=np.float32)
-        primitive = np.full(n, -1, dtype=np.int64)
-        for start in range(0, n, batch):
-            m = min(batch, n - start)
-            answer = self._scene.cast_rays(self._o3c.Tensor.from_numpy(rays[start:start + m]))
-            t_hit = answer["t_hit"].numpy()
-            ok = np.isfinite(t_hit)
-            t[start:start + m] = np.where(ok, t_hit + np.float32(t_min), np.inf)
-            prim = answer["primitive_ids"].numpy().astype(np.int64)
-            if self._triangle_vertices is None:
-                prim //= 2
-            primitive[start:start + m] = np.where(ok, prim, -1)
+        t, primitive = self._completion_hits(rays, batch=batch)
+        t += np.float32(t_min)  # inf stays inf on a miss
+        primitive[primitive == self.n_primitives] = -1
         return t, primitive
 
     def _completion_hits(self, rays: np.ndarray, *, batch: int = DEFAULT_BATCH) -> tuple[np.ndarray, np.ndarray]:
-        """:meth:`_first_primitive_rays` with ``t_min`` 0 as a table lookup wants it: ``t`` (N,) float32, ``inf`` on a
-        miss, and the primitive (N,) int64, :attr:`n_primitives` on a miss (the last entry of a
-        :meth:`~mvintrinsic.shadow_caster.ShadowCaster.completion_blocked` table, which -1 reads there too).
-        Embree's arrays taken as they are: no masking pass per output."""
+        """The first hit of each of Embree's ``rays`` ((N, 6) float32, C-contiguous, read without a copy) as a
+        lookup table wants it: ``t`` (N,) float32, ``inf`` on a miss, and the primitive (N,) int64,
+        :attr:`n_primitives` on a miss (the last entry of a
+        :meth:`~mvintrinsic.shadow_caster.ShadowCaster.completion_blocked` table). Embree's arrays taken as they
+        are: no masking pass per output (the relighter's per-sun completion query)."""
         n = len(rays)
         t = np.empty(n, dtype=np.float32)
         primitive = np.empty(n, dtype=np.int64)

@@ -76,9 +76,10 @@ took 0.30 s per view with one caster ray and one proxy ray per pixel; now 0.086 
   elements, so the rays are written a coordinate at a time (:func:`_offset_rays`), the subsets of rays gathered
   by ``np.take`` (4x faster than ``rays[index]`` on 2-D arrays), the proxy's hits read as Embree gives them
   with a miss on the lookup table's last entry (:meth:`~mvintrinsic.raytrace.Tracer._completion_hits`), the
-  mixture of hypotheses one table lookup, and the grid written by slices (:func:`_put_grid`). The same rays, states and images to the bit; open3d holds the GIL
-  while Embree casts, so this NumPy time was not hidden by the second thread: a new sun 9-10% faster (three
-  scenes at 1000x750, renders alternating with the code before in one process; ``docs/relight.md``, "Speed").
+  mixture of hypotheses one table lookup, and the grid written by slices (:func:`_put_grid`). The same rays,
+  states and images to the bit; open3d holds the GIL while Embree casts, so this NumPy time was not hidden by the
+  second thread: a new sun 9-10% faster (three scenes at 1000x750, renders alternating with the code before in
+  one process; ``docs/relight.md``, "Speed").
 
 Ordering the rays in 8x8 or 16x16 tiles instead of rows changed the Embree time by under 6%:
 not done.
@@ -278,9 +279,8 @@ def _put_grid(image: np.ndarray, values: np.ndarray | bool, stride: int) -> None
     """``image[np.ix_(ys, xs)] = values`` for :func:`_strided`'s grid rows ``ys`` and columns ``xs`` (every
     ``stride``-th, then the last if it is not one), by slices: 20x faster than the fancy index at 1000x750."""
     h, w = image.shape
-    if np.ndim(values) == 0:
-        values = np.broadcast_to(values, (len(range(0, h - 1, stride)) + 1, len(range(0, w - 1, stride)) + 1))
-    ny, nx = len(range(0, h, stride)), len(range(0, w, stride))
+    ny, nx = len(range(0, h, stride)), len(range(0, w, stride))  # the grid without the last row and column
+    values = np.broadcast_to(values, (ny + ((h - 1) % stride > 0), nx + ((w - 1) % stride > 0)))
     image[::stride, ::stride] = values[:ny, :nx]
     image[-1, ::stride] = values[-1, :nx]  # the last row and column: the grid's own when they are on it
     image[::stride, -1] = values[:ny, -1]
@@ -755,8 +755,8 @@ def _fuse(fusion: Mapping[str, sparse.csr_matrix], visibility: Mapping[str, np.n
     stacked = np.concatenate([np.asarray(visibility[s], np.float32).ravel() for s in fusion])
 
     def fused(s: str) -> np.ndarray:
-        fused = fusion[s] @ stacked  # float32, as the weights and the stacked values
-        return np.clip(fused, 0.0, 1.0, out=fused).astype(np.float32, copy=False).reshape(np.shape(visibility[s]))
+        mean = fusion[s] @ stacked  # float32, as the weights and the stacked values
+        return np.clip(mean, 0.0, 1.0, out=mean).astype(np.float32, copy=False).reshape(np.shape(visibility[s]))
 
     return {s: fused(s) for s in fusion} if run is None else run(fused)
 

@@ -1,7 +1,7 @@
 """Relighting (paper Sec. 8) against path-traced renders of the same scene under moved suns.
 
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
-                                       | --proxy-loss | --error-split | --sky-pixels
+                                       | --proxy-loss | --error-split | --occluder-distance | --sky-pixels
                                        | --lost-occluders | --sun-radiance | --true-labels]
                                        [--relight-config JSON] [--decompose-config JSON] [--no-caster-study]
                                        [--out benchmarks/results/relight.json]
@@ -94,7 +94,9 @@ picks some of them and ``--update`` merges them into an existing ``--out``.
 
 ``--error-split`` only splits row (d)'s squared error beyond row (c)'s by the true shadow state
 at the capture and the new sun and ours at the new sun (:func:`error_split_scene`): which shadows
-the caster misses or adds.
+the caster misses or adds. ``--occluder-distance`` splits it by how far the exact mesh's occluder
+is along the capture and the new sun (:func:`occluder_distance_scene`): near occluders (ledges,
+recesses) or far ones (crowns, posts).
 
 ``--lost-occluders`` only scores rows (a), (c), (d) and (e) with and without
 :attr:`~mvintrinsic.relight.RelightConfig.lost_occluders` (the shadow rays that miss the proxy
@@ -1041,47 +1043,61 @@ TRUE_TRANSITIONS = (("new shadow", True, False), ("stays shadow", False, False),
 OURS_STATES = ("shadow", "lit", "dropped")
 
 
-def error_split(estimate: dict, reference: dict, truth: dict, sky_mask: dict, capture_lit: dict, new_lit: dict,
-                ours: dict) -> dict:
-    """Where a relit image's squared error is, beyond a reference relighting's, by shadow state.
+def error_by_class(estimate: dict, reference: dict, truth: dict, sky_mask: dict, classes: dict,
+                   names: Sequence[str]) -> dict:
+    """Where a relit image's squared error is, beyond a reference relighting's, by pixel class.
 
     Per view, both images are clipped as :func:`relit_psnr` clips them and their squared error
     against the truth (summed over the channels) is added up over the non-sky pixels of each
-    class: the true transition (:data:`TRUE_TRANSITIONS`, from ``capture_lit`` and ``new_lit``,
-    (H, W) bool per view stem) and our state (``ours``, (H, W) int per stem, an index into
-    :data:`OURS_STATES`).
+    class: ``classes`` (H, W) int per view stem, an index into ``names``; pixels of any other value
+    are not scored.
 
     Returns
     -------
     dict
-        Per class ``"<transition>, ours <state>"``: ``pixels`` (share of the scored pixels),
-        ``estimate`` and ``reference`` (share of that image's summed squared error) and ``excess``
-        (share of the estimate's squared error above the reference's; they sum to 1 over the
-        classes, None when the totals are equal); and ``totals``, both mean squared errors per
-        channel.
+        Per class name: ``pixels`` (share of the scored pixels), ``estimate`` and ``reference`` (share
+        of that image's summed squared error) and ``excess`` (share of the estimate's squared error
+        above the reference's; they sum to 1 over the classes, None when the totals are equal); and
+        ``totals``, both mean squared errors per channel.
     """
-    names = [f"{t}, ours {o}" for t, *_ in TRUE_TRANSITIONS for o in OURS_STATES]
-    sums = {name: np.zeros(3) for name in names}
+    sums = np.zeros((len(names), 3))
     total, count = np.zeros(2), 0
     for s, image in truth.items():
         image = np.asarray(image, dtype=np.float64)
         mask = ~np.asarray(sky_mask[s], dtype=bool) & np.isfinite(image).all(axis=-1)
         top = float(np.percentile(image[mask], CLIP_PERCENTILE))
+        code = np.asarray(classes[s])
+        mask &= (code >= 0) & (code < len(names))
         target = np.clip(np.nan_to_num(image), 0.0, top)
         errors = [((np.clip(np.nan_to_num(np.asarray(x[s], dtype=np.float64)), 0.0, top) - target) ** 2).sum(axis=-1)
                   for x in (estimate, reference)]
-        for transition, capture, new in TRUE_TRANSITIONS:
-            for code, state in enumerate(OURS_STATES):
-                chosen = mask & (capture_lit[s] == capture) & (new_lit[s] == new) & (ours[s] == code)
-                sums[f"{transition}, ours {state}"] += (chosen.sum(), errors[0][chosen].sum(), errors[1][chosen].sum())
+        for index in range(len(names)):
+            chosen = mask & (code == index)
+            sums[index] += (chosen.sum(), errors[0][chosen].sum(), errors[1][chosen].sum())
         total += (errors[0][mask].sum(), errors[1][mask].sum())
         count += int(mask.sum())
     excess = total[0] - total[1]
     out = {name: {"pixels": float(v[0] / count), "estimate": float(v[1] / total[0]),
                   "reference": float(v[2] / total[1]), "excess": float((v[1] - v[2]) / excess) if excess else None}
-           for name, v in sums.items()}
+           for name, v in zip(names, sums, strict=True)}
     out["totals"] = {"estimate_mse": float(total[0] / count / 3), "reference_mse": float(total[1] / count / 3)}
     return out
+
+
+def error_split(estimate: dict, reference: dict, truth: dict, sky_mask: dict, capture_lit: dict, new_lit: dict,
+                ours: dict) -> dict:
+    """:func:`error_by_class` by shadow state: the true transition (:data:`TRUE_TRANSITIONS`, from
+    ``capture_lit`` and ``new_lit``, (H, W) bool per view stem) and our state (``ours``, (H, W) int per
+    stem, an index into :data:`OURS_STATES`); the classes are named ``"<transition>, ours <state>"``."""
+    names = [f"{t}, ours {o}" for t, *_ in TRUE_TRANSITIONS for o in OURS_STATES]
+    classes = {}
+    for s in truth:
+        code = np.full(np.shape(ours[s]), -1, dtype=np.int64)
+        for index, (_, capture, new) in enumerate(TRUE_TRANSITIONS):
+            chosen = (capture_lit[s] == capture) & (new_lit[s] == new)
+            code[chosen] = index * len(OURS_STATES) + np.asarray(ours[s])[chosen]
+        classes[s] = code
+    return error_by_class(estimate, reference, truth, sky_mask, classes, names)
 
 
 def error_split_scene(folder: Path) -> dict:
@@ -1113,6 +1129,102 @@ def error_split_scene(folder: Path) -> dict:
         print(f"{folder.name} {tag}: " + "; ".join(f"{name} {v['pixels']:.3f} px {v['excess']:+.2f}"
                                                    for name, v in out[tag].items()
                                                    if name != "totals" and abs(v["excess"] or 0) >= 0.02), flush=True)
+    return out
+
+
+#: Upper bounds (metres) of :func:`occluder_distance_scene`'s classes of the exact mesh's first occluder
+#: along a sun ray from the exact receiver; a last class, ``lit``, for the rays that meet nothing.
+OCCLUDER_DISTANCE_BOUNDS = (0.6, 2.0, 5.0)
+OCCLUDER_DISTANCE_NAMES = ("< 0.6 m", "0.6-2 m", "2-5 m", ">= 5 m", "lit")
+
+
+def occluder_distance_class(distance: np.ndarray) -> np.ndarray:
+    """The index into :data:`OCCLUDER_DISTANCE_NAMES` of each first-occluder ``distance`` (metres, ``inf``
+    for a ray that meets nothing, NaN for no receiver: -1, not scored); same shape, int64."""
+    distance = np.asarray(distance, dtype=np.float64)
+    code = np.searchsorted(np.asarray(OCCLUDER_DISTANCE_BOUNDS), distance, side="right").astype(np.int64)
+    code[np.isinf(distance)] = len(OCCLUDER_DISTANCE_NAMES) - 1
+    code[np.isnan(distance)] = -1
+    return code
+
+
+def exact_occluder_distance(mesh: MeshShadow, stem: str, direction: np.ndarray, offset: float) -> np.ndarray:
+    """(H, W) metres from each exact receiver of view ``stem`` along ``direction`` to the exact mesh's first
+    hit (the ray starting ``offset`` toward the sun, as every shadow ray): ``inf`` where it meets nothing, NaN
+    at a non-finite receiver (:class:`MeshShadow` fills a pixel whose camera ray misses the mesh from the nearest
+    hit; the sky is left out by the scoring's mask)."""
+    points = mesh.points[stem].reshape(-1, 3)
+    valid = np.isfinite(points).all(axis=1)
+    distance = np.full(len(points), np.nan)
+    t, _ = mesh.tracer.first_primitive(points[valid], direction, t_min=offset)
+    distance[valid] = t
+    return distance.reshape(mesh.points[stem].shape[:2])
+
+
+def occluder_distance_scene(folder: Path) -> dict:
+    """Where row (d)'s error is beyond row (c)'s (:func:`error_by_class`), by how far the exact mesh's
+    occluder is along the capture sun and along the new sun from the pixel's exact receiver (classes
+    ``"capture <a>, new <b>"`` of :data:`OCCLUDER_DISTANCE_NAMES`; ``lit``: nothing blocks the ray), per
+    relit tag: which occluders' shadows the caster gets wrong (near ones, ledges and recesses the proxy
+    smooths, or far ones, crowns and posts it loses). Row (d) is the default relighter's image as the main run
+    scores it (:meth:`~mvintrinsic.relight.Relighter.render` without a given ``v'``), row (c) as in
+    :func:`error_split_scene`.
+    """
+    scene, tags, sky_mask = _relit_scene(folder, "--occluder-distance")
+    stems = scene.stems
+    ground_truth = ground_truth_decomposition(folder, views=list(stems))
+    tracer = Tracer(scene.proxy)
+    config = relight_config()
+    ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
+    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
+    mesh = MeshShadow(folder, scene)
+    names = [f"capture {a}, new {b}" for a in OCCLUDER_DISTANCE_NAMES for b in OCCLUDER_DISTANCE_NAMES]
+    n = len(OCCLUDER_DISTANCE_NAMES)
+    capture = {s: occluder_distance_class(exact_occluder_distance(mesh, s, ours.sun, config.ray_offset))
+               for s in stems}
+    out = {}
+    for tag, (direction, images, _) in tags.items():
+        new = {s: occluder_distance_class(exact_occluder_distance(mesh, s, direction, config.ray_offset))
+               for s in stems}
+        classes = {s: np.where((capture[s] >= 0) & (new[s] >= 0), capture[s] * n + new[s], -1) for s in stems}
+        exact = mesh.visibility(direction, dataclasses.replace(config, blur=0.0))
+        out[tag] = error_by_class(ours.render(direction), plain.render(direction, visibility=exact), images,
+                                  sky_mask, classes, names)
+        print(f"{folder.name} {tag}: " + "; ".join(f"{name} {v['pixels']:.3f} px {v['excess']:+.2f}"
+                                                   for name, v in out[tag].items()
+                                                   if name != "totals" and abs(v["excess"] or 0) >= 0.05), flush=True)
+    return out
+
+
+#: :func:`occluder_distance_summary`'s groups: the true transition, then the occluder distances (metres) it
+#: takes: of the new sun's occluder for a new shadow, of the capture's for a shadow that leaves.
+OCCLUDER_DISTANCE_GROUPS = (("new shadow", "< 0.6 m"), ("new shadow", "0.6-2 m"), ("new shadow", ">= 2 m"),
+                            ("shadow leaves", "< 0.6 m"), ("shadow leaves", "0.6-2 m"), ("shadow leaves", ">= 2 m"),
+                            ("stays shadow", "any"), ("stays lit", "any"))
+
+
+def occluder_distance_summary(study: dict) -> dict:
+    """Per scene and tag of :func:`occluder_distance_scene`'s output, the share of row (d)'s excess squared
+    error in each of :data:`OCCLUDER_DISTANCE_GROUPS` (``"<transition>, <distance>"``); the classes whose
+    occluder moved from one distance class to another are counted as staying in shadow."""
+    far = (">= 2 m", ("2-5 m", ">= 5 m"))
+    near = {"< 0.6 m": ("< 0.6 m",), "0.6-2 m": ("0.6-2 m",), far[0]: far[1]}
+    out = {}
+    for scene, tags in study.items():
+        out[scene] = {}
+        for tag, split in tags.items():
+            shares = {}
+            for transition, distance in OCCLUDER_DISTANCE_GROUPS:
+                if transition == "new shadow":
+                    names = [f"capture lit, new {d}" for d in near[distance]]
+                elif transition == "shadow leaves":
+                    names = [f"capture {d}, new lit" for d in near[distance]]
+                elif transition == "stays lit":
+                    names = ["capture lit, new lit"]
+                else:
+                    names = [n for n in split if n != "totals" and "lit" not in n]
+                shares[f"{transition}, {distance}"] = float(sum(split[n]["excess"] or 0.0 for n in names))
+            out[scene][tag] = shares
     return out
 
 
@@ -1409,6 +1521,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="only rows (c), (d), (e) on proxies simulated with less foliage and thin-structure loss")
     parser.add_argument("--error-split", action="store_true",
                         help="only where row (d)'s squared error is beyond row (c)'s, by true and relit shadow state")
+    parser.add_argument("--occluder-distance", action="store_true",
+                        help="only where row (d)'s squared error is beyond row (c)'s, by the exact mesh's occluder "
+                             "distance along the capture and the new sun")
     parser.add_argument("--lost-occluders", action="store_true",
                         help="only rows (a), (c)-(e) with and without RelightConfig.lost_occluders (lost_occluders_scene)")
     parser.add_argument("--sun-radiance", action="store_true",
@@ -1454,7 +1569,9 @@ def main(argv: list[str] | None = None) -> int:
     studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
-               ("error_split", "error_split", error_split_scene), ("sky_pixels", "sky_pixels", sky_pixels_scene),
+               ("error_split", "error_split", error_split_scene),
+               ("occluder_distance", "occluder_distance", occluder_distance_scene),
+               ("sky_pixels", "sky_pixels", sky_pixels_scene),
                ("lost_occluders", "lost_occluders", lost_occluders_scene), ("sun_radiance", "sun_radiance", sun_radiance_scene),
                ("true_labels", "true_labels", true_labels_scene))
     if args.proxy_variant:
@@ -1482,6 +1599,8 @@ def main(argv: list[str] | None = None) -> int:
                 report["sun_radiance_summary"] = sun_radiance_summary(report[key])
             if key == "true_labels":
                 report["true_labels_summary"] = true_labels_summary(report[key])
+            if key == "occluder_distance":
+                report["occluder_distance_summary"] = occluder_distance_summary(report[key])
             if args.out:
                 write_json(args.out, report)
             return 0

@@ -165,6 +165,50 @@ def test_relight_error_split_puts_each_pixel_error_in_its_shadow_class():
     assert split["totals"] == {"estimate_mse": pytest.approx(3.75 / 7 / 3), "reference_mse": pytest.approx(3 / 7 / 3)}
 
 
+def test_relight_error_by_class_leaves_out_pixels_of_no_class():
+    import bench_relight
+
+    truth = {"v": np.ones((1, 4, 3))}
+    sky = {"v": np.zeros((1, 4), dtype=bool)}
+    estimate = {"v": np.ones((1, 4, 3))}
+    estimate["v"][0, 0] = 0.0  # error 3 in class "a"
+    estimate["v"][0, 3] = 0.0  # error 3 at a pixel of no class (-1): not scored anywhere
+    reference = {"v": np.ones((1, 4, 3))}
+    reference["v"][0, 1] = 0.5  # error 0.75 in class "b"
+    split = bench_relight.error_by_class(estimate, reference, truth, sky, {"v": np.array([[0, 1, 1, -1]])},
+                                         ["a", "b"])
+    assert split["a"]["pixels"] == pytest.approx(1 / 3)
+    assert split["a"]["excess"] == pytest.approx(3 / 2.25)
+    assert split["b"]["excess"] == pytest.approx(-0.75 / 2.25)
+    assert split["totals"] == {"estimate_mse": pytest.approx(3 / 3 / 3), "reference_mse": pytest.approx(0.75 / 3 / 3)}
+
+
+def test_relight_occluder_distance_classes():
+    import bench_relight
+
+    names = bench_relight.OCCLUDER_DISTANCE_NAMES
+    distance = np.array([0.0, 0.59, 0.6, 1.99, 2.0, 4.9, 5.0, 80.0, np.inf, np.nan])
+    got = [names[c] if c >= 0 else None for c in bench_relight.occluder_distance_class(distance)]
+    assert got == ["< 0.6 m", "< 0.6 m", "0.6-2 m", "0.6-2 m", "2-5 m", "2-5 m", ">= 5 m", ">= 5 m", "lit", None]
+
+
+def test_relight_occluder_distance_summary_groups_every_class_once():
+    import bench_relight
+
+    names = bench_relight.OCCLUDER_DISTANCE_NAMES
+    classes = [f"capture {a}, new {b}" for a in names for b in names]
+    split = {name: {"excess": 1.0 / len(classes)} for name in classes}
+    split["totals"] = {}
+    split["capture 2-5 m, new lit"]["excess"] = None  # equal totals: counted as 0
+    summary = bench_relight.occluder_distance_summary({"scene": {"az+15": split}})["scene"]["az+15"]
+    assert list(summary) == [f"{t}, {d}" for t, d in bench_relight.OCCLUDER_DISTANCE_GROUPS]
+    assert summary["new shadow, >= 2 m"] == pytest.approx(2 / 25)
+    assert summary["shadow leaves, >= 2 m"] == pytest.approx(1 / 25)
+    assert summary["stays shadow, any"] == pytest.approx(16 / 25)
+    assert summary["stays lit, any"] == pytest.approx(1 / 25)
+    assert sum(summary.values()) == pytest.approx(24 / 25)
+
+
 def test_lost_occluders_summary_averages_the_15_degree_suns():
     import bench_relight
 

@@ -1497,6 +1497,36 @@ def save_figure(panels: dict, path: Path) -> None:
     plt.close(fig)
 
 
+def save_occluder_distance_figure(summary: dict, path: Path) -> None:
+    """Stacked bars of :func:`occluder_distance_summary`: per scene and relit tag, the share of row (d)'s excess
+    squared error in each group of :data:`OCCLUDER_DISTANCE_GROUPS` (negative shares below the axis)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bars = [(f"{scene} {tag}", shares) for scene, tags in summary.items() for tag, shares in tags.items()]
+    groups = [f"{t}, {d}" for t, d in OCCLUDER_DISTANCE_GROUPS]
+    colours = plt.get_cmap("tab10").colors
+    fig, ax = plt.subplots(figsize=(max(6.0, 0.45 * len(bars) + 2.5), 4.2))
+    up, down = np.zeros(len(bars)), np.zeros(len(bars))
+    for index, group in enumerate(groups):
+        share = np.array([100.0 * b[group] for _, b in bars])
+        base = np.where(share >= 0, up, down)
+        ax.bar(np.arange(len(bars)), share, bottom=base, color=colours[index % len(colours)], label=group)
+        up += np.maximum(share, 0.0)
+        down += np.minimum(share, 0.0)
+    ax.axhline(0.0, color="black", linewidth=0.6)
+    ax.set_xticks(np.arange(len(bars)), [name for name, _ in bars], rotation=70, fontsize=7)
+    ax.set_ylabel("share of row (d)'s excess squared error (%)")
+    ax.set_title("Where row (d) loses to row (c), by the exact occluder's distance", fontsize=9)
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
 #: ``--timed-occluders``: the ``RelightConfig.lost_occluders`` of the timed relighter.
 TIMED_OCCLUDERS = {"none": None, "occupancy": OccupancyConfig(), "default": RelightConfig().lost_occluders}
 
@@ -1546,7 +1576,9 @@ def main(argv: list[str] | None = None) -> int:
                         help='a partial Config for every decomposition the benchmark makes, e.g. \'{"step1": {"planes": null}}\'')
     parser.add_argument("--no-caster-study", action="store_true", help="main run: skip the caster study")
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
-    parser.add_argument("--figure", type=Path, default=None, help="PNG or JPEG (by suffix): input, ours, truth per relit sun")
+    parser.add_argument("--figure", type=Path, default=None,
+                        help="PNG or JPEG (by suffix): input, ours, truth per relit sun; with --occluder-distance, "
+                             "stacked bars of its split")
     args = parser.parse_args(argv)
     CONFIG_OVERRIDES.clear()
     CONFIG_OVERRIDES.update(_parse_overrides(args.relight_config))
@@ -1601,6 +1633,8 @@ def main(argv: list[str] | None = None) -> int:
                 report["true_labels_summary"] = true_labels_summary(report[key])
             if key == "occluder_distance":
                 report["occluder_distance_summary"] = occluder_distance_summary(report[key])
+                if args.figure:
+                    save_occluder_distance_figure(report["occluder_distance_summary"], args.figure)
             if args.out:
                 write_json(args.out, report)
             return 0

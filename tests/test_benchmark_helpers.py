@@ -209,6 +209,17 @@ def test_relight_occluder_distance_summary_groups_every_class_once():
     assert sum(summary.values()) == pytest.approx(24 / 25)
 
 
+def test_relight_occluder_distance_figure_is_drawn(tmp_path):
+    pytest.importorskip("matplotlib", reason="the figure needs matplotlib (the plot extra)")
+    import bench_relight
+
+    groups = [f"{t}, {d}" for t, d in bench_relight.OCCLUDER_DISTANCE_GROUPS]
+    shares = {g: 0.1 * (i + 1) - 0.3 for i, g in enumerate(groups)}  # negative shares go below the axis
+    path = tmp_path / "figures" / "split.png"
+    bench_relight.save_occluder_distance_figure({"a": {"az+15": shares, "az-15": shares}}, path)
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
 def test_lost_occluders_summary_averages_the_15_degree_suns():
     import bench_relight
 

@@ -610,7 +610,7 @@ def as_sun_direction(sun: object, *, up: np.ndarray = (0.0, 0.0, 1.0)) -> np.nda
             raise ValueError(f"sun must be finite, got {value.tolist()}")
         if value.shape == (2,):
             if value[1] > 90.0:
-                raise ValueError(f"sun: the elevation must be at most 90 degrees, got {value[1]!r}")
+                raise ValueError(f"sun: the elevation must be at most 90 degrees, got {float(value[1]):g}")
             azimuth, elevation = np.radians(value)
             frame = horizontal_frame(up)
             value = math.cos(elevation) * (math.cos(azimuth) * frame[0] + math.sin(azimuth) * frame[1]) \

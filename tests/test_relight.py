@@ -750,6 +750,11 @@ def test_a_bad_sun_is_refused_naming_sun(bad, error):
         as_sun_direction(bad)
 
 
+def test_an_elevation_over_90_degrees_is_reported_as_a_number():
+    with pytest.raises(ValueError, match=r"at most 90 degrees, got 95\.5$"):
+        as_sun_direction((SUN_AZIMUTH, 95.5))
+
+
 def test_paper_environment_factors():
     capture = sun(SUN_AZIMUTH, 35.0)
     gain, factor = paper_environment_factors(capture, capture)

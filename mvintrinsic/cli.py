@@ -362,7 +362,7 @@ def _cmd_relight(args: argparse.Namespace) -> int:
     if by_time and args.elevation is not None:
         raise ValueError("--elevation goes with --azimuth or --sequence; --time gives the sun's position itself")
     if args.sequence is not None and (args.sequence[2] < 2 or args.sequence[2] != int(args.sequence[2])):
-        raise ValueError(f"--sequence STEPS must be an integer >= 2, got {args.sequence[2]!r}")
+        raise ValueError(f"--sequence STEPS must be an integer >= 2, got {args.sequence[2]:g}")
     check_result_folder(args.out, scene=args.scene, overwrite=args.overwrite)  # before any work
     scene = load_scene(args.scene, progress=not args.quiet)
     if by_time:

@@ -1100,6 +1100,19 @@ def error_split(estimate: dict, reference: dict, truth: dict, sky_mask: dict, ca
     return error_by_class(estimate, reference, truth, sky_mask, classes, names)
 
 
+def _bound_and_caster(folder: Path, what: str) -> tuple:
+    """What rows (c) and (d) of a study need: the scene, its relit tags, the true sky masks (:func:`_relit_scene`),
+    the ground-truth layers' default :class:`~mvintrinsic.relight.Relighter` (row (d)), the same layers with
+    ``dropped="none"`` (row (c)'s relighter) and the exact mesh's shadows (:class:`MeshShadow`)."""
+    scene, tags, sky_mask = _relit_scene(folder, what)
+    ground_truth = ground_truth_decomposition(folder, views=list(scene.stems))
+    tracer = Tracer(scene.proxy)
+    config = relight_config()
+    ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
+    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
+    return scene, tags, sky_mask, ours, plain, MeshShadow(folder, scene)
+
+
 def error_split_scene(folder: Path) -> dict:
     """Where row (d)'s error is beyond row (c)'s (:func:`error_split`), per relit tag.
 
@@ -1108,22 +1121,15 @@ def error_split_scene(folder: Path) -> dict:
     true states are ``gt/sun_visibility`` and ``gt/relit/<tag>/sun_visibility``; ours is the
     relit visibility, and ``dropped`` for the pixels of the dropped clusters (:data:`OURS_STATES`).
     """
-    scene, tags, sky_mask = _relit_scene(folder, "--error-split")
+    scene, tags, sky_mask, ours, plain, mesh = _bound_and_caster(folder, "--error-split")
     stems = scene.stems
-    ground_truth = ground_truth_decomposition(folder, views=list(stems))
     truth = read_ground_truth(folder, views=list(stems))
     capture_lit = {s: np.asarray(truth[s].sun_visibility, dtype=np.float64) >= 0.5 for s in stems}
-    tracer = Tracer(scene.proxy)
-    config = relight_config()
-    ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
-    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
-    mesh = MeshShadow(folder, scene)
     out = {}
     for tag, (direction, images, visibility) in tags.items():
         relit = ours.visibility_at(direction)
-        exact = mesh.visibility(direction, dataclasses.replace(config, blur=0.0))
         state = {s: np.where(ours.casters[s].dropped, 2, (relit[s] >= 0.5).astype(np.int64)) for s in stems}
-        out[tag] = error_split(ours.render(direction, visibility=relit), plain.render(direction, visibility=exact),
+        out[tag] = error_split(ours.render(direction, visibility=relit), mesh.render(plain, direction, ours.config),
                                images, sky_mask, capture_lit, {s: np.asarray(visibility[s], bool) for s in stems},
                                state)
         print(f"{folder.name} {tag}: " + "; ".join(f"{name} {v['pixels']:.3f} px {v['excess']:+.2f}"
@@ -1170,25 +1176,16 @@ def occluder_distance_scene(folder: Path) -> dict:
     scores it (:meth:`~mvintrinsic.relight.Relighter.render` without a given ``v'``), row (c) as in
     :func:`error_split_scene`.
     """
-    scene, tags, sky_mask = _relit_scene(folder, "--occluder-distance")
-    stems = scene.stems
-    ground_truth = ground_truth_decomposition(folder, views=list(stems))
-    tracer = Tracer(scene.proxy)
-    config = relight_config()
-    ours = Relighter(ground_truth, scene, config=config, tracer=tracer)
-    plain = Relighter(ground_truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
-    mesh = MeshShadow(folder, scene)
+    scene, tags, sky_mask, ours, plain, mesh = _bound_and_caster(folder, "--occluder-distance")
+    stems, offset = scene.stems, ours.config.ray_offset
     names = [f"capture {a}, new {b}" for a in OCCLUDER_DISTANCE_NAMES for b in OCCLUDER_DISTANCE_NAMES]
     n = len(OCCLUDER_DISTANCE_NAMES)
-    capture = {s: occluder_distance_class(exact_occluder_distance(mesh, s, ours.sun, config.ray_offset))
-               for s in stems}
+    capture = {s: occluder_distance_class(exact_occluder_distance(mesh, s, ours.sun, offset)) for s in stems}
     out = {}
     for tag, (direction, images, _) in tags.items():
-        new = {s: occluder_distance_class(exact_occluder_distance(mesh, s, direction, config.ray_offset))
-               for s in stems}
+        new = {s: occluder_distance_class(exact_occluder_distance(mesh, s, direction, offset)) for s in stems}
         classes = {s: np.where((capture[s] >= 0) & (new[s] >= 0), capture[s] * n + new[s], -1) for s in stems}
-        exact = mesh.visibility(direction, dataclasses.replace(config, blur=0.0))
-        out[tag] = error_by_class(ours.render(direction), plain.render(direction, visibility=exact), images,
+        out[tag] = error_by_class(ours.render(direction), mesh.render(plain, direction, ours.config), images,
                                   sky_mask, classes, names)
         print(f"{folder.name} {tag}: " + "; ".join(f"{name} {v['pixels']:.3f} px {v['excess']:+.2f}"
                                                    for name, v in out[tag].items()
@@ -1196,36 +1193,34 @@ def occluder_distance_scene(folder: Path) -> dict:
     return out
 
 
-#: :func:`occluder_distance_summary`'s groups: the true transition, then the occluder distances (metres) it
-#: takes: of the new sun's occluder for a new shadow, of the capture's for a shadow that leaves.
+#: :func:`occluder_distance_summary`'s groups: the true transition, then the occluder distance (metres; of the
+#: new sun's occluder for a new shadow, of the capture's for a shadow that leaves).
 OCCLUDER_DISTANCE_GROUPS = (("new shadow", "< 0.6 m"), ("new shadow", "0.6-2 m"), ("new shadow", ">= 2 m"),
                             ("shadow leaves", "< 0.6 m"), ("shadow leaves", "0.6-2 m"), ("shadow leaves", ">= 2 m"),
                             ("stays shadow", "any"), ("stays lit", "any"))
+#: The classes of :data:`OCCLUDER_DISTANCE_NAMES` each group distance takes in.
+_GROUP_DISTANCES = {"< 0.6 m": ("< 0.6 m",), "0.6-2 m": ("0.6-2 m",), ">= 2 m": ("2-5 m", ">= 5 m"),
+                    "any": OCCLUDER_DISTANCE_NAMES[:-1]}
 
 
 def occluder_distance_summary(study: dict) -> dict:
     """Per scene and tag of :func:`occluder_distance_scene`'s output, the share of row (d)'s excess squared
     error in each of :data:`OCCLUDER_DISTANCE_GROUPS` (``"<transition>, <distance>"``); the classes whose
     occluder moved from one distance class to another are counted as staying in shadow."""
-    far = (">= 2 m", ("2-5 m", ">= 5 m"))
-    near = {"< 0.6 m": ("< 0.6 m",), "0.6-2 m": ("0.6-2 m",), far[0]: far[1]}
-    out = {}
-    for scene, tags in study.items():
-        out[scene] = {}
-        for tag, split in tags.items():
-            shares = {}
-            for transition, distance in OCCLUDER_DISTANCE_GROUPS:
-                if transition == "new shadow":
-                    names = [f"capture lit, new {d}" for d in near[distance]]
-                elif transition == "shadow leaves":
-                    names = [f"capture {d}, new lit" for d in near[distance]]
-                elif transition == "stays lit":
-                    names = ["capture lit, new lit"]
-                else:
-                    names = [n for n in split if n != "totals" and "lit" not in n]
-                shares[f"{transition}, {distance}"] = float(sum(split[n]["excess"] or 0.0 for n in names))
-            out[scene][tag] = shares
-    return out
+    def classes(transition: str, distance: str) -> list[str]:
+        within = _GROUP_DISTANCES[distance]
+        if transition == "new shadow":
+            return [f"capture lit, new {d}" for d in within]
+        if transition == "shadow leaves":
+            return [f"capture {d}, new lit" for d in within]
+        if transition == "stays lit":
+            return ["capture lit, new lit"]
+        return [f"capture {a}, new {b}" for a in within for b in within]  # stays shadow, at any two distances
+
+    return {scene: {tag: {f"{t}, {d}": float(sum(split[name]["excess"] or 0.0 for name in classes(t, d)))
+                          for t, d in OCCLUDER_DISTANCE_GROUPS}
+                    for tag, split in tags.items()}
+            for scene, tags in study.items()}
 
 
 def receivers_scene(folder: Path) -> dict:

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import argparse
 import ast
-import json
 import sys
 import time
 from pathlib import Path
@@ -32,7 +31,7 @@ import bench_relight  # noqa: E402  (the resampling of the timing command)
 import mvintrinsic.relight as relight_module  # noqa: E402
 import mvintrinsic.shadow_caster as shadow_caster  # noqa: E402
 from mvintrinsic.evaluation import ground_truth_decomposition  # noqa: E402
-from mvintrinsic.io import load_scene  # noqa: E402
+from mvintrinsic.io import load_scene, write_json  # noqa: E402
 from mvintrinsic.sun_position import azimuth_elevation  # noqa: E402
 
 FUNCTIONS = ("_strided", "_fuse")
@@ -117,8 +116,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.pairs < 1:
         parser.error(f"--pairs must be at least 1, got {args.pairs}")
     try:
-        size = tuple(int(v) for v in args.size.lower().split("x"))
-        if len(size) != 2 or min(size) < 2:
+        size = bench_relight._parse_size(args.size)
+        if min(size) < 2:
             raise ValueError
     except ValueError:
         parser.error(f"--size must be WxH, got {args.size!r}")
@@ -135,10 +134,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{row['new_faster_share']:.0%} of {args.pairs} pairs; identical images: {row['identical_images']}",
               flush=True)
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = args.out.with_suffix(args.out.suffix + ".tmp")
-        tmp.write_text(json.dumps(out, indent=1))
-        tmp.replace(args.out)
+        write_json(args.out, out)
     return 0
 
 

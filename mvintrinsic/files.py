@@ -30,14 +30,29 @@ __all__ = ["exif_orient", "import_colour", "read_image", "read_image_for_size", 
 # images
 # ---------------------------------------------------------------------------------------------
 def import_colour():
-    """Import colour-science without its warning about the optional matplotlib.
+    """Import colour-science without its warning about the optional matplotlib, and without its stubs.
 
     colour-science warns on import when its plotting dependency is absent; mvintrinsic only uses
-    its transfer functions.
+    its transfer functions. It also puts ``unittest.mock.MagicMock`` objects into ``sys.modules``
+    under ``matplotlib``, ``matplotlib.pyplot``, ``cycler``, ``mpl_toolkits`` and their kin, so that
+    a later ``import matplotlib`` anywhere in the process succeeds and every plot silently draws
+    nothing (``fig, ax = plt.subplots()`` then fails far from the cause). Those entries are put
+    back as they were before the import: ``import matplotlib`` raises ``ImportError`` again where
+    matplotlib is absent. colour's own plotting module keeps its references; mvintrinsic never
+    calls it.
     """
+    import sys
+
+    before = dict(sys.modules)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*Matplotlib.*related API features are not available")
         import colour
+    for name, module in list(sys.modules.items()):
+        if type(module).__module__ == "unittest.mock" and before.get(name) is not module:
+            if name in before:
+                sys.modules[name] = before[name]
+            else:
+                del sys.modules[name]
     return colour
 
 

@@ -93,3 +93,34 @@ def test_importing_every_module_and_decomposing_leaves_the_process_alone():
         changed = {k: (report["before"][k], report[stage][k]) for k in report["before"]
                    if report["before"][k] != report[stage][k]}
         assert not changed, f"{stage}: process-wide state changed: {changed}"
+
+
+#: colour-science, imported without matplotlib, puts MagicMock stand-ins into ``sys.modules``;
+#: matplotlib is blocked here (``None`` in ``sys.modules``) so the check runs whether or not it is installed.
+WITHOUT_MATPLOTLIB = r"""
+import json, sys
+for name in ("matplotlib", "matplotlib.pyplot", "cycler", "mpl_toolkits"):
+    sys.modules[name] = None
+from mvintrinsic.files import import_colour
+colour = import_colour()
+encoded = float(colour.cctf_encoding(0.5, function="sRGB"))
+try:
+    import matplotlib.pyplot
+    outcome = "imported " + repr(matplotlib.pyplot)
+except ImportError:
+    outcome = "ImportError"
+stand_ins = sorted(n for n, m in sys.modules.items() if type(m).__module__ == "unittest.mock")
+print(json.dumps({"encoded": encoded, "import_matplotlib": outcome, "stand_ins": stand_ins}))
+"""
+
+
+def test_importing_colour_without_matplotlib_leaves_no_stand_in_matplotlib():
+    # A later ``import matplotlib`` (a benchmark's figure, the user's notebook) must fail as
+    # matplotlib is absent, not hand back colour's MagicMock that draws nothing (CI failure of
+    # test_relight_occluder_distance_figure_is_drawn in a venv without the plot extra).
+    done = subprocess.run([sys.executable, "-c", WITHOUT_MATPLOTLIB], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout.strip().splitlines()[-1])
+    assert report["import_matplotlib"] == "ImportError"
+    assert report["stand_ins"] == []
+    assert abs(report["encoded"] - 0.7353569830524495) < 1e-9  # sRGB encoding of 0.5: colour still works

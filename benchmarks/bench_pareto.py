@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from _figures import require_matplotlib
 
 import mvintrinsic
 from mvintrinsic import decompose
@@ -265,6 +266,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--figure", type=Path, default=None, help="PNG chart")
     parser.add_argument("--plot-only", type=Path, default=None, help="draw --figure from this JSON report and exit")
     args = parser.parse_args(argv)
+    require_matplotlib(parser, args, "figure", "plot_only")
     if args.plot_only:
         import json
 

@@ -144,6 +144,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from _figures import require_matplotlib
 from bench_distributed import _parse_size, upsampled
 from bench_shadows import away_from_edges
 from scipy import ndimage
@@ -1575,6 +1576,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="PNG or JPEG (by suffix): input, ours, truth per relit sun; with --occluder-distance, "
                              "stacked bars of its split")
     args = parser.parse_args(argv)
+    require_matplotlib(parser, args, "figure")
     CONFIG_OVERRIDES.clear()
     CONFIG_OVERRIDES.update(_parse_overrides(args.relight_config))
     DECOMPOSE_OVERRIDES.clear()

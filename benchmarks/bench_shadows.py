@@ -63,6 +63,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from _figures import require_matplotlib
 from scipy import ndimage
 
 import mvintrinsic
@@ -288,6 +289,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="JSON report")
     parser.add_argument("--figure", type=Path, default=None, help="PNG: image, truth, both labellings per scene")
     args = parser.parse_args(argv)
+    require_matplotlib(parser, args, "figure")
     multiview = MultiViewShadowConfig()
     if args.edge_reference is not None:
         multiview = dataclasses.replace(multiview, edge_reference=args.edge_reference)

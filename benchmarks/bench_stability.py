@@ -74,6 +74,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from _figures import require_matplotlib
 
 ROOT = Path(__file__).resolve().parents[2]
 HERE = Path(__file__).resolve()
@@ -646,6 +647,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--plot-only", type=Path, default=None, help="draw --plot from this JSON report and exit")
     parser.add_argument("--_point", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    require_matplotlib(parser, args, "plot", "plot_only")
 
     if args._point:  # the child: one point
         job = json.loads(args._point)

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import sys
 
 import bench_pareto  # benchmarks/ is on pytest's pythonpath (pyproject.toml)
 import bench_stability
@@ -444,3 +445,27 @@ def test_relight_paired_reads_a_checkouts_per_sun_code_and_names_a_bad_reference
     (tmp_path / "mvintrinsic" / "shadow_caster.py").write_text("def _strided():\n    pass\n")
     with pytest.raises(ValueError, match="_fuse"):
         bench_relight_paired.reference_code(tmp_path)
+
+
+@pytest.mark.parametrize("module, argv", [
+    ("bench_relight", ["--figure", "relit.jpg"]),
+    ("bench_shadows", ["--smoke", "--figure", "labels.png"]),
+    ("bench_pareto", ["--smoke", "--figure", "pareto.png"]),
+    ("bench_pareto", ["--plot-only", "pareto.json"]),
+    ("bench_stability", ["--smoke", "--plot", "curves.png"]),
+])
+def test_a_figure_without_matplotlib_is_refused_before_the_run(module, argv, monkeypatch, capsys, tmp_path):
+    # A figure asked of a long run must fail at its start (usage error, status 2), not after it;
+    # ``None`` in sys.modules makes matplotlib absent whether or not it is installed.
+    import importlib
+
+    bench = importlib.import_module(module)
+    monkeypatch.setitem(sys.modules, "matplotlib", None)
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as exit_info:
+        bench.main(argv)
+    assert exit_info.value.code == 2
+    message = capsys.readouterr().err
+    flag = argv[-2]
+    assert f"{flag} needs matplotlib" in message and "mvintrinsic[plot]" in message
+    assert list(tmp_path.iterdir()) == []  # nothing run, nothing written

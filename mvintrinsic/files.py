@@ -13,6 +13,7 @@ import contextlib
 import functools
 import json
 import os
+import sys
 import tempfile
 import warnings
 from collections.abc import Callable, Mapping
@@ -41,8 +42,6 @@ def import_colour():
     matplotlib is absent. colour's own plotting module keeps its references; mvintrinsic never
     calls it.
     """
-    import sys
-
     before = dict(sys.modules)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*Matplotlib.*related API features are not available")
@@ -52,7 +51,7 @@ def import_colour():
             if name in before:
                 sys.modules[name] = before[name]
             else:
-                del sys.modules[name]
+                sys.modules.pop(name, None)  # another thread's call may have put it back already
     return colour
 
 

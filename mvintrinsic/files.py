@@ -42,6 +42,10 @@ def import_colour():
     matplotlib is absent. colour's own plotting module keeps its references; mvintrinsic never
     calls it.
     """
+    if "colour" in sys.modules:  # imported already: its stand-ins were dealt with then, or are the importer's
+        import colour  # (another thread's import in progress: this waits for it)
+
+        return colour
     before = dict(sys.modules)
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*Matplotlib.*related API features are not available")

@@ -190,7 +190,13 @@ def run_sample(mode: str, argv: list[str], snapshot: Path | None) -> dict:
 
 
 def _parse_size(text: str) -> tuple[int, int]:
-    w, h = (int(v) for v in text.lower().split("x"))
+    """``--size WxH`` as ``(W, H)`` pixels, each at least 2 (an argparse ``type``: a bad value is a usage error)."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be WxH, got {text!r}") from None
+    if min(w, h) < 2:
+        raise argparse.ArgumentTypeError(f"must be WxH with W and H at least 2, got {text!r}")
     return w, h
 
 

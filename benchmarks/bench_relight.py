@@ -1534,7 +1534,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scene", action="append", default=None, help="score DATA/NAME (repeatable)")
     parser.add_argument("--timing", action="store_true",
                         help="only time the relighter on the ground-truth layers (scenes without relit renders)")
-    parser.add_argument("--size", default=None, help="with --timing: resample the views and layers to WxH first")
+    parser.add_argument("--size", type=_parse_size, default=None,
+                        help="with --timing: resample the views and layers to WxH first")
     parser.add_argument("--stride", action="store_true",
                         help="only compare RelightConfig.ray_stride 2 and 3 with 1 on the ground-truth layers")
     parser.add_argument("--softness", action="store_true",
@@ -1589,13 +1590,12 @@ def main(argv: list[str] | None = None) -> int:
               "psnr": f"linear RGB, non-sky pixels, both clipped to [0, truth's {CLIP_PERCENTILE}th percentile], "
                       "data range = that percentile", "scenes": {}}
     # The studies (one per flag): a scene folder -> its JSON entry, written under the report key.
-    size = _parse_size(args.size) if args.size else None
     # --timing: the relighter without lost_occluders (relight_timing_resampled.json), with OccupancyConfig()
     # (--lost-occluders or --timed-occluders occupancy: relight_timing_lost_occluders.json), or the default relighter
     # (--timed-occluders default, silhouette 1: relight_timing_default.json).
     timed = relight_config(lost_occluders=TIMED_OCCLUDERS[args.timed_occluders or
                                                           ("occupancy" if args.lost_occluders else "none")])
-    studies = (("timing", "timing", functools.partial(time_scene, size=size, config=timed)), ("stride", "ray_stride", stride_scene),
+    studies = (("timing", "timing", functools.partial(time_scene, size=args.size, config=timed)), ("stride", "ray_stride", stride_scene),
                ("softness", "softness", softness_scene), ("bounds", "bounds", bounds_scene),
                ("receivers", "receivers", receivers_scene), ("proxy_loss", "proxy_loss", proxy_loss_scene),
                ("error_split", "error_split", error_split_scene),

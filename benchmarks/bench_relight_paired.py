@@ -27,6 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_relight  # noqa: E402  (the resampling of the timing command)
+from bench_distributed import _parse_size  # noqa: E402
 
 import mvintrinsic.relight as relight_module  # noqa: E402
 import mvintrinsic.shadow_caster as shadow_caster  # noqa: E402
@@ -109,25 +110,20 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reference", type=Path, required=True, help="another checkout of the project")
     parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "data")
     parser.add_argument("--scene", action="append", default=None, help="scene folder name under --data")
-    parser.add_argument("--size", default="1000x750", help="WxH the views are resampled to")
+    parser.add_argument("--size", type=_parse_size, default=(1000, 750),
+                        help="WxH the views are resampled to (default 1000x750)")
     parser.add_argument("--pairs", type=int, default=30)
     parser.add_argument("--out", type=Path, default=None)
     args = parser.parse_args(argv)
     if args.pairs < 1:
         parser.error(f"--pairs must be at least 1, got {args.pairs}")
-    try:
-        size = bench_relight._parse_size(args.size)
-        if min(size) < 2:
-            raise ValueError
-    except ValueError:
-        parser.error(f"--size must be WxH, got {args.size!r}")
     reference = reference_code(args.reference)
     out = {"benchmark": "relight_paired", "reference": str(args.reference), "scenes": {}}
     for name in args.scene or ["demo_480r", "courtyard_s1r", "street_s0r"]:
         folder = args.data / name
         if not folder.is_dir():
             parser.error(f"--scene {name}: no folder {folder}")
-        row = pair_scene(folder, reference, size, args.pairs)
+        row = pair_scene(folder, reference, args.size, args.pairs)
         out["scenes"][name] = row
         print(f"{name}: new {row['new_median'] * 1e3:.1f} ms, reference {row['reference_median'] * 1e3:.1f} ms per view "
               f"and sun (medians); new/reference {row['ratio_median']:.3f}, new faster in "

@@ -607,11 +607,13 @@ def stride_scene(folder: Path, strides: tuple[int, ...] = (2, 3)) -> dict:
     without relit renders, suns 15 and 30 degrees of azimuth either side of the capture): the
     share of the non-blurred shadow state that differs from ``ray_stride=1``, the relit PSNR of
     each stride against the path-traced render, and seconds per view of the new visibility.
+    One relighter is built per stride and blur (a built relighter's options are read-only: every
+    view's per-sun inputs hold them).
     """
     scene = load_scene(folder)
     stems = scene.stems
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
-    relighter = Relighter(ground_truth, scene, tracer=Tracer(scene.proxy), config=relight_config())
+    tracer = Tracer(scene.proxy)
     tags = relit_tags(folder, stems)
     sky_mask = None
     if tags:
@@ -621,34 +623,35 @@ def stride_scene(folder: Path, strides: tuple[int, ...] = (2, 3)) -> dict:
     else:
         azimuth, elevation = azimuth_elevation(scene.sun.direction, up=scene.up)
         suns = {f"az{d:+d}": (as_sun_direction((azimuth + d, elevation), up=scene.up), None) for d in (-30, -15, 15, 30)}
-    default = relighter.config
-    out = {}
-    for tag, (direction, images) in suns.items():
-        rows = {}
-        for stride in (1, *strides):
-            relighter.config = dataclasses.replace(default, ray_stride=stride, blur=0.0)
-            relighter.visibility_at(direction)  # warm-up of the first sun's caches
+    rows: dict = {tag: {} for tag in suns}
+    for stride in (1, *strides):
+        sharp = Relighter(ground_truth, scene, tracer=tracer, config=relight_config(ray_stride=stride, blur=0.0))
+        for tag, (direction, _) in suns.items():
+            sharp.visibility_at(direction)  # warm-up of the first sun's caches
             start = time.perf_counter()
-            sharp = relighter.visibility_at(direction)
+            shadow = sharp.visibility_at(direction)
             seconds = (time.perf_counter() - start) / len(stems)
-            relighter.config = dataclasses.replace(default, ray_stride=stride)
-            row = {"visibility_seconds_per_view": seconds, "shadow": {s: sharp[s] < 0.5 for s in stems}}
-            if images is not None:
-                row["psnr"] = mean_psnr(relighter.render(direction), images, sky_mask)["mean"]
-            rows[stride] = row
+            rows[tag][stride] = {"visibility_seconds_per_view": seconds, "shadow": {s: shadow[s] < 0.5 for s in stems}}
+        del sharp
+        if tags:
+            relighter = Relighter(ground_truth, scene, tracer=tracer, config=relight_config(ray_stride=stride))
+            for tag, (direction, images) in suns.items():
+                rows[tag][stride]["psnr"] = mean_psnr(relighter.render(direction), images, sky_mask)["mean"]
+            del relighter
+    out = {}
+    for tag, by_stride in rows.items():
         for stride in strides:
-            rows[stride]["changed_share"] = float(np.mean([np.mean(rows[stride]["shadow"][s] != rows[1]["shadow"][s])
-                                                           for s in stems]))
-            if images is not None:
-                rows[stride]["psnr_change"] = rows[stride]["psnr"] - rows[1]["psnr"]
-        for row in rows.values():
+            row = by_stride[stride]
+            row["changed_share"] = float(np.mean([np.mean(row["shadow"][s] != by_stride[1]["shadow"][s]) for s in stems]))
+            if tags:
+                row["psnr_change"] = row["psnr"] - by_stride[1]["psnr"]
+        for row in by_stride.values():
             del row["shadow"]
-        out[tag] = {str(k): v for k, v in rows.items()}
+        out[tag] = {str(k): v for k, v in by_stride.items()}
         print(f"{folder.name} {tag}: " + " ".join(
             f"stride {k} changed {v['changed_share']:.6f} " + (f"dPSNR {v['psnr_change']:+.4f} " if "psnr_change" in v else "")
-            + f"{v['visibility_seconds_per_view'] * 1e3:.1f} ms (stride 1 {rows[1]['visibility_seconds_per_view'] * 1e3:.1f})"
-            for k, v in rows.items() if k != 1), flush=True)
-    relighter.config = default
+            + f"{v['visibility_seconds_per_view'] * 1e3:.1f} ms (stride 1 {by_stride[1]['visibility_seconds_per_view'] * 1e3:.1f})"
+            for k, v in by_stride.items() if k != 1), flush=True)
     return out
 
 

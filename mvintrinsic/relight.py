@@ -291,6 +291,9 @@ class Relighter:
 
     Attributes
     ----------
+    config : RelightConfig
+        The configuration the relighter was built with; read-only (its casters and every view's
+        per-sun inputs were built from it): build another relighter for other options.
     stems : tuple of str
         The views, in the scene's order.
     sun : (3,) float64
@@ -353,6 +356,12 @@ class Relighter:
             self._build(decomposition, scene, config=config, tracer=tracer, batch=batch, client=client,
                         threads=threads)
 
+    @property
+    def config(self) -> RelightConfig:
+        """The :class:`RelightConfig` the relighter was built with (read-only: the casters and every view's per-sun
+        inputs hold it; an option changed afterwards would reach some steps and not others)."""
+        return self._config
+
     def _build(self, decomposition: Decomposition, scene: Scene, *, config: RelightConfig | None, tracer: Tracer | None,
                batch: int, client: Any, threads: int) -> None:
         decomposition, scene = _check_decomposition(decomposition, scene)
@@ -367,7 +376,7 @@ class Relighter:
         lighting = decomposition.lighting
         up = scene.up
         capture = _check_sun(lighting.sun.direction, up)
-        self.decomposition, self.scene, self.config, self.tracer = decomposition, scene, config, tracer
+        self.decomposition, self.scene, self._config, self.tracer = decomposition, scene, config, tracer
         self.stems = scene.stems
         self.up, self.sun = up, capture
         self.sun_radiance = lighting.sun_radiance

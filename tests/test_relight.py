@@ -866,6 +866,16 @@ def test_receiver_normals_are_the_proxy_normals(scene):
     assert (normals[far][:, 2] > 0.999).all()
 
 
+def test_a_built_relighters_config_is_read_only(box_relit):
+    # Every view's per-sun inputs hold the build's options: a config set afterwards reached some steps and not
+    # others (the benchmark's stride study measured the build's stride); it is refused instead.
+    decomposition, box_scene = box_relit
+    relighter = Relighter(decomposition, box_scene, config=RelightConfig(ray_stride=2))
+    with pytest.raises(AttributeError, match="config"):
+        relighter.config = RelightConfig(ray_stride=1)
+    assert relighter.config == RelightConfig(ray_stride=2)
+
+
 @pytest.mark.parametrize(("sky", "dropped"), [("paper", "light"), ("model", "light"), ("paper", "static")])
 def test_relighting_at_the_capture_sun_with_the_layers_visibility_is_the_identity(box_relit, sky, dropped):
     decomposition, box_scene = box_relit

@@ -46,7 +46,7 @@ took 0.30 s per view with one caster ray and one proxy ray per pixel; now 0.086 
 * **Rays only where the visibility varies** (:attr:`RelightConfig.ray_stride`): both queries run
   on a grid of every second pixel, then on every pixel of the grid cells whose corners disagree
   and of their neighbours (0.39 of the pixels at 1000x750). Against every pixel
-  (``bench_relight.py --stride``, ``benchmarks/results/relight_stride.json``, today's defaults,
+  (``bench_relight.py --stride``, ``benchmarks/results/relight_stride.json``, the defaults of 2026-12-07,
   the true layers, five 480x360 scenes, 22 scene-suns), the sharp shadow state of 0.014-0.12% of
   the pixels changes, isolated pixels the blur mostly absorbs, and the relit PSNR by -0.006 to
   +0.025 dB (mean +0.007); stride 3 changed 0.03-0.16% and -0.011 to +0.047 dB (below stride 2 at

@@ -39,7 +39,7 @@ from .results import SHADOW_LABELS
 from .scene import View
 
 __all__ = ["Agreement", "Correspondences", "ReflectanceSpread", "consensus", "cross_view_agreement",
-           "cross_view_reflectance_spread", "find_correspondences", "fuse_views", "log_image", "surface_points"]
+           "cross_view_reflectance_spread", "cross_view_value_agreement", "find_correspondences", "fuse_views", "log_image", "surface_points"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -396,6 +396,68 @@ def cross_view_agreement(
     same = (high == 0) | (high == count)
     total = int(seen_twice.sum())
     return Agreement(fraction=float(same[seen_twice].mean()) if total else None, points=total,
+                     points_tested=flat.shape[1])
+
+
+def cross_view_value_agreement(
+    views: Sequence[View],
+    quantities: Mapping[str, PixelQuantities],
+    values: Mapping[str, np.ndarray],
+    points: np.ndarray,
+    *,
+    tolerance: float = 0.5,
+    depth_tolerance: float = 0.02,
+    photo_tolerance: float = 0.2,
+    blur: float = 1.0,
+) -> Agreement:
+    """Share of surface points whose soft value (a sun visibility) differs by less than ``tolerance`` over the views.
+
+    The soft counterpart of :func:`cross_view_agreement`, for layers in [0, 1] such as a relit
+    shadow layer ``v'``: a point agrees when the largest minus the smallest of the values the views
+    give it is below ``tolerance``. On binary layers (values 0 and 1) and any ``tolerance`` in
+    (0, 1] it is :func:`cross_view_agreement`'s fraction. Where a shadow is soft (a penumbra, a
+    blur, a crown's dapples averaged) the binary measure's threshold at 0.5 counts two views that
+    give a point 0.45 and 0.55 as disagreeing and two that give it 0.55 and 0.95 as agreeing; this
+    one counts what the images show: how different the shadow is.
+
+    Parameters
+    ----------
+    views : sequence of View
+    quantities : mapping of str to PixelQuantities
+    values : mapping of str to (H, W) array_like
+        Per view, values in [0, 1]; NaN pixels are not read (as the undecided label 128 in
+        :func:`cross_view_agreement`). Pixels outside ``quantities[stem].valid`` are never read.
+    points : (N, 3) array_like
+        World points to test, e.g. the proxy's vertices.
+    tolerance : float, optional
+        In (0, 1]; 0.5 (default): the views differ by less than half the shadow's depth.
+    depth_tolerance, photo_tolerance, blur : float, optional
+        As :func:`cross_view_agreement`.
+
+    Returns
+    -------
+    Agreement
+        ``fraction`` over the points seen by two or more views with a value read in each.
+    """
+    if not is_real(tolerance) or not 0.0 < tolerance <= 1.0:
+        raise ValueError(f"tolerance must be a number in (0, 1], got {tolerance!r}")
+    ordered = _check_views(views, quantities)
+    for view in ordered:
+        if view.stem not in values:
+            raise ValueError(f"values: no layer for view {view.stem!r}")
+        if np.shape(values[view.stem]) != view.shape:
+            raise ValueError(f"values[{view.stem!r}] has shape {np.shape(values[view.stem])}, the view is {view.shape}")
+    flat = _seen_pixels(ordered, quantities, points, depth_tolerance, photo_tolerance, blur)
+    read = np.full(flat.shape, np.nan)
+    for i, view in enumerate(ordered):
+        seen = flat[i] >= 0
+        read[i, seen] = np.asarray(values[view.stem], dtype=np.float64).ravel()[flat[i, seen]]
+    twice = np.isfinite(read).sum(axis=0) >= 2
+    if not twice.any():
+        return Agreement(fraction=None, points=0, points_tested=flat.shape[1])
+    read = read[:, twice]
+    spread = np.nanmax(read, axis=0) - np.nanmin(read, axis=0)  # every column holds two readings or more
+    return Agreement(fraction=float(np.mean(spread < tolerance)), points=int(twice.sum()),
                      points_tested=flat.shape[1])
 
 

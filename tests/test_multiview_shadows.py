@@ -18,6 +18,7 @@ from mvintrinsic.correspondence import (
     Correspondences,
     cross_view_agreement,
     cross_view_reflectance_spread,
+    cross_view_value_agreement,
     find_correspondences,
     fuse_views,
 )
@@ -335,6 +336,33 @@ def test_cross_view_agreement(two_views):
     assert cross_view_agreement(views, quantities, codes, points).fraction == 0.0
     codes["b"] = np.full(views[1].shape, SHADOW_LABELS["undecided"], np.uint8)  # undecided is not read
     assert cross_view_agreement(views, quantities, codes, points).fraction is None
+
+
+def test_cross_view_value_agreement(two_views):
+    views, quantities = two_views
+    points = np.stack(np.meshgrid(np.linspace(-1, 1, 30), np.linspace(-1, 1, 30), [0.0]), -1).reshape(-1, 3)
+    a, b = views[0].shape, views[1].shape
+    # 0.45 against 0.55: the binary measure's states differ (0.5 threshold), the values by 0.1
+    soft = {"a": np.full(a, 0.45), "b": np.full(b, 0.55)}
+    assert cross_view_value_agreement(views, quantities, soft, points).fraction == 1.0
+    assert cross_view_agreement(views, quantities, {k: v >= 0.5 for k, v in soft.items()}, points).fraction == 0.0
+    # 0.55 against 0.95: the same state, 0.4 apart: agreeing at 0.5, not at 0.3
+    soft = {"a": np.full(a, 0.55), "b": np.full(b, 0.95)}
+    assert cross_view_value_agreement(views, quantities, soft, points).fraction == 1.0
+    assert cross_view_value_agreement(views, quantities, soft, points, tolerance=0.3).fraction == 0.0
+    # binary layers give the binary measure's fraction, half the points one way
+    left = np.zeros(a)
+    left[:, : a[1] // 2] = 1.0
+    binary = {"a": left, "b": np.ones(b)}
+    expected = cross_view_agreement(views, quantities, {k: v >= 0.5 for k, v in binary.items()}, points)
+    got = cross_view_value_agreement(views, quantities, binary, points)
+    assert 0.0 < got.fraction < 1.0 and got.fraction == expected.fraction and got.points == expected.points
+    # NaN is not read: nothing is seen twice
+    assert cross_view_value_agreement(views, quantities, {"a": left, "b": np.full(b, np.nan)}, points).fraction is None
+    with pytest.raises(ValueError, match="tolerance"):
+        cross_view_value_agreement(views, quantities, binary, points, tolerance=0.0)
+    with pytest.raises(ValueError, match="values"):
+        cross_view_value_agreement(views, quantities, {"a": left}, points)
 
 
 

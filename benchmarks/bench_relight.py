@@ -2,7 +2,7 @@
 
     python benchmarks/bench_relight.py [--smoke] [--data DIR --scene NAME ...] [--timing | --stride | --softness | --bounds | --receivers
                                        | --proxy-loss | --error-split | --occluder-distance | --sky-pixels
-                                       | --lost-occluders | --sun-radiance | --true-labels]
+                                       | --lost-occluders | --sun-radiance | --true-labels | --agreement]
                                        [--relight-config JSON] [--decompose-config JSON] [--no-caster-study]
                                        [--out benchmarks/results/relight.json]
                                        [--figure docs/images/relight.png]
@@ -66,6 +66,13 @@ run with an option is reproduced. A keyword a row or study sets itself (e.g. ``-
 as :meth:`~mvintrinsic.Config.from_dict` reads them) changes every decomposition the run makes (row (e) and the
 studies' pipelines; the report's ``decompose_config`` records it); ``--no-caster-study`` skips the caster study
 of a main run (most of its time) where only the rows are wanted.
+
+``--agreement`` only asks what the cross-view agreement measures and where rows (d) and (e) lose it
+(:func:`agreement_scene`; ``agreement_summary``: per row the lowest value and the scene-suns at 0.95 or more): the
+binary measure away from the true edges beside its soft counterpart (the views' ``v'`` within 0.5 of each other,
+:func:`~mvintrinsic.correspondence.cross_view_value_agreement`), for the truth, the exact mesh's shadow at suns turned
+by 0.5-2 degrees (one 3D shadow, not the truth's), rows (d) and (e), row (d) on the exact receivers, and the views'
+caster sheets alone.
 
 ``--sky-pixels`` only compares the colours :attr:`~mvintrinsic.relight.RelightConfig.sky_pixels` gives
 the sky pixels, by :func:`sky_psnr` (:func:`sky_pixels_scene`).
@@ -151,7 +158,7 @@ from scipy import ndimage
 
 import mvintrinsic
 from mvintrinsic import Config, decompose, image_model
-from mvintrinsic.correspondence import cross_view_agreement
+from mvintrinsic.correspondence import cross_view_agreement, cross_view_value_agreement
 from mvintrinsic.env_shading import step1
 from mvintrinsic.evaluation import ground_truth_decomposition, read_ground_truth
 from mvintrinsic.io import load_scene, read_image, read_proxy, read_scene_json, write_json
@@ -385,6 +392,97 @@ def relit_agreement(scene, quantities, points: np.ndarray, visibility: dict, tru
     return cross_view_agreement(scene.views, quantities, labels, points).fraction
 
 
+def agreement_inputs(scene, tracer: Tracer, config: Config) -> tuple[dict, np.ndarray]:
+    """What the agreement measures read: Step 1's pixel quantities (``config``'s Step 1, as Step 3 uses them) and the
+    tested points (every k-th proxy vertex, at most :data:`AGREEMENT_POINTS`)."""
+    quantities = carry_to_pixels(scene, step1(scene, config=config.step1, tracer=tracer, rng=config.seed), tracer)
+    return quantities, scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
+
+
+def relit_value_agreement(scene, quantities, points: np.ndarray, visibility: dict, true_lit: dict) -> float:
+    """The soft counterpart of :func:`relit_agreement` (``agreement_interior``): a point agrees when the largest minus
+    the smallest ``visibility`` over the views that see it is below 0.5
+    (:func:`~mvintrinsic.correspondence.cross_view_value_agreement`), the pixels within one pixel of a true shadow
+    edge not read."""
+    undecided = away_from_edges({s: np.zeros(np.shape(v), np.uint8) for s, v in visibility.items()}, true_lit)
+    values = {s: np.where(undecided[s] == SHADOW_LABELS["undecided"], np.nan, np.asarray(v, np.float64))
+              for s, v in visibility.items()}
+    return cross_view_value_agreement(scene.views, quantities, values, points).fraction
+
+
+#: ``--agreement``: the azimuths (degrees) by which the exact mesh's control shadow is turned from each relit sun.
+AGREEMENT_SHIFTS = (-2.0, -1.0, -0.5, 0.5, 1.0, 2.0)
+
+
+def agreement_scene(folder: Path) -> dict:
+    """What issue 15's cross-view agreement measures, and where rows (d) and (e) lose it (``--agreement``).
+
+    Per relit tag, the binary measure away from the true edges (``agreement_interior``, :func:`relit_agreement`) and
+    its soft counterpart (:func:`relit_value_agreement`: the views' ``v'`` within 0.5 of each other) of:
+
+    * ``truth``: ``gt/relit/<tag>/sun_visibility``;
+    * ``exact_az{d}``: a shadow that is one 3D field by construction but not the truth's: the exact mesh's (row (c)'s
+      sharp shadow, exact receivers) at the sun turned by ``d`` degrees of azimuth (:data:`AGREEMENT_SHIFTS`), read
+      against the tag's true edges: whether the measure asks for consistency or for the truth's edges;
+    * ``gt_caster`` (d) and ``pipeline`` (e), as the main run;
+    * ``gt_caster_exact_receivers``: row (d) with its receivers on the exact mesh (:func:`_exact_receivers`);
+    * ``sheets_own`` / ``sheets_merged``: each view's own caster sheets alone, and the union of every view's
+      (:attr:`~mvintrinsic.relight.Relighter.caster`), from row (d)'s receivers, a ray from every pixel, the 1 px
+      blur: no completion, fusion or anchor (what the views' sheets agree on by themselves).
+    """
+    scene, tags, _ = _relit_scene(folder, "--agreement")
+    tracer = Tracer(scene.proxy)
+    decompose_config = pipeline_config()
+    print(f"{folder.name}: decomposing {len(scene.stems)} views", flush=True)
+    result = decompose(scene, tracer=tracer, config=decompose_config)
+    truth = ground_truth_decomposition(folder, views=list(scene.stems))
+    quantities, points = agreement_inputs(scene, tracer, decompose_config)
+    config = relight_config()
+    rows = {"gt_caster": Relighter(truth, scene, config=config, tracer=tracer),
+            "pipeline": Relighter(result, scene, config=config, tracer=tracer)}
+    mesh = MeshShadow(folder, scene)
+    with _exact_receivers(scene, mesh):
+        rows["gt_caster_exact_receivers"] = _exact_receivers_built(
+            Relighter(truth, scene, config=config, tracer=tracer), mesh)
+    ours = rows["gt_caster"]
+    merged = ShadowCaster(ours.caster)
+    every_pixel = dataclasses.replace(config, ray_stride=1)
+    sharp = dataclasses.replace(config, blur=0.0)
+    out = {}
+    for tag, (direction, _, true_lit) in tags.items():
+        direction = np.asarray(direction, dtype=np.float64)
+        azimuth, elevation = azimuth_elevation(direction, up=scene.up)
+        layers = {"truth": {s: true_lit[s].astype(np.float64) for s in scene.stems}}
+        for shift in AGREEMENT_SHIFTS:
+            turned = as_sun_direction((azimuth + shift, elevation), up=scene.up)
+            layers[f"exact_az{shift:+g}"] = {s: np.nan_to_num(v, nan=1.0) for s, v in mesh.visibility(turned, sharp).items()}
+        for name, relighter in rows.items():
+            layers[name] = shadow_layer(relighter, relighter.visibility_at(direction))
+        for name, caster in (("sheets_own", None), ("sheets_merged", merged)):
+            layers[name] = {s: np.nan_to_num((caster or ours.shadow_casters[s]).sun_visibility(
+                ours.receivers[s], ours.normals[s], direction, up=scene.up, config=every_pixel), nan=1.0)
+                for s in scene.stems}
+        out[tag] = {name: {"binary": relit_agreement(scene, quantities, points, layer, true_lit),
+                           "soft": relit_value_agreement(scene, quantities, points, layer, true_lit)}
+                    for name, layer in layers.items()}
+        print(f"{folder.name} {tag}: " + " ".join(f"{k} {v['binary']:.3f}/{v['soft']:.3f}" for k, v in out[tag].items()),
+              flush=True)
+    return out
+
+
+def agreement_summary(study: dict) -> dict:
+    """Per row of :func:`agreement_scene` and measure: the lowest value over the scene-suns and how many reach 0.95."""
+    rows: dict = {}
+    for tags in study.values():
+        for entry in tags.values():
+            for row, measures in entry.items():
+                for measure, value in measures.items():
+                    rows.setdefault(row, {}).setdefault(measure, []).append(value)
+    return {row: {measure: {"min": float(min(values)), "max": float(max(values)),
+                            "at_least_0.95": int(sum(v >= 0.95 for v in values)), "scene_suns": len(values)}
+                  for measure, values in measures.items()} for row, measures in rows.items()}
+
+
 def shadow_layer(relighter: Relighter, visibility: dict) -> dict:
     """The relit image's shadow layer: ``visibility`` with, under ``dropped="light"`` (the paper), the
     dropped clusters' captured ``v_sun`` multiplied in, since there their shadow stays in the
@@ -418,9 +516,7 @@ def run_scene(folder: Path) -> tuple[dict, dict]:
     result = decompose(scene, tracer=tracer, config=decompose_config)
     entry["decompose_seconds"] = time.perf_counter() - start
     ground_truth = ground_truth_decomposition(folder, views=list(stems))
-    quantities = carry_to_pixels(scene, step1(scene, config=decompose_config.step1, tracer=tracer,
-                                                   rng=decompose_config.seed), tracer)
-    points = scene.proxy.vertices[:: max(1, len(scene.proxy.vertices) // AGREEMENT_POINTS)]
+    quantities, points = agreement_inputs(scene, tracer, decompose_config)
     mesh = MeshShadow(folder, scene)
 
     def agreement(visibility: dict, true_lit: dict | None = None) -> float:
@@ -1015,11 +1111,16 @@ RECEIVER_ROWS = ("input", "gt_mesh", "gt_caster", "gt_caster_exact_receivers", "
 def _exact_receivers(scene, mesh: MeshShadow):
     """Within the block, :class:`Relighter` places every pixel's receiver on the exact mesh (an oracle).
 
-    ``mvintrinsic.relight.receiver_points`` is swapped for one returning the exact mesh's point of
-    the view whose camera it is given (the proxy's where the exact mesh has none); the proxy
-    still gives the normals, the caster distances and the completion.
+    ``receiver_points`` is swapped, where the relighter's view geometry looks it up
+    (:mod:`mvintrinsic.shadow_caster`), for one returning the exact mesh's point of the view whose
+    camera it is given (the proxy's where the exact mesh has none); the proxy still gives the normals,
+    the caster distances and the completion. :func:`_exact_receivers_built` checks that a relighter
+    built in the block took them. (From 2026-11-27, when the view geometry moved to
+    :mod:`~mvintrinsic.shadow_caster`, until 2026-12-08 the swap was made in :mod:`mvintrinsic.relight`, where
+    nothing read it: the oracle built the plain relighter. ``results/relight_receivers.json`` is of
+    2026-11-25, before.)
     """
-    import mvintrinsic.relight as module
+    import mvintrinsic.shadow_caster as module
 
     original = module.receiver_points
     by_center = [(v.camera.center, v.stem) for v in scene.views]
@@ -1035,6 +1136,16 @@ def _exact_receivers(scene, mesh: MeshShadow):
         yield
     finally:
         module.receiver_points = original
+
+
+def _exact_receivers_built(relighter: Relighter, mesh: MeshShadow) -> Relighter:
+    """``relighter``, after checking that its receivers are the exact mesh's wherever the mesh has a point
+    (:func:`_exact_receivers`); RuntimeError if they are not."""
+    for stem, exact in mesh.points.items():
+        found = np.isfinite(exact).all(axis=-1)
+        if not np.array_equal(relighter.receivers[stem][found], exact[found]):
+            raise RuntimeError(f"view {stem!r}: the relighter built under _exact_receivers has the proxy's receivers")
+    return relighter
 
 
 #: The true shadow states of :func:`error_split`'s classes: at the capture sun, then at the new sun.
@@ -1262,7 +1373,7 @@ def receivers_scene(folder: Path) -> dict:
     plain = Relighter(truth, scene, config=dataclasses.replace(config, dropped="none"), tracer=tracer)
     mesh = MeshShadow(folder, scene)
     with _exact_receivers(scene, mesh):
-        oracle = Relighter(truth, scene, config=config, tracer=tracer)
+        oracle = _exact_receivers_built(Relighter(truth, scene, config=config, tracer=tracer), mesh)
     every_pixel = dataclasses.replace(config, ray_stride=1)
     # The exact mesh as the proxy completion of an empty caster: the relighter's own rays, offset,
     # attached-shadow test, near-hit rule (``min_distance``) and blur, from the proxy's receivers.
@@ -1560,6 +1671,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="only row (e) with the pipeline's L_sun replaced by the truth, its level or its colour")
     parser.add_argument("--true-labels", action="store_true",
                         help="only row (e) with Steps 3-4 fed the true shadow labels, three relighters (true_labels_scene)")
+    parser.add_argument("--agreement", action="store_true",
+                        help="only what the cross-view agreement measures, and where rows (d) and (e) lose it")
     parser.add_argument("--sky-pixels", action="store_true",
                         help="only compare RelightConfig.sky_pixels' modes on the sky pixels (sky_pixels_scene)")
     parser.add_argument("--timed-occluders", choices=TIMED_OCCLUDERS, default=None,
@@ -1605,7 +1718,7 @@ def main(argv: list[str] | None = None) -> int:
                ("occluder_distance", "occluder_distance", occluder_distance_scene),
                ("sky_pixels", "sky_pixels", sky_pixels_scene),
                ("lost_occluders", "lost_occluders", lost_occluders_scene), ("sun_radiance", "sun_radiance", sun_radiance_scene),
-               ("true_labels", "true_labels", true_labels_scene))
+               ("true_labels", "true_labels", true_labels_scene), ("agreement", "agreement_study", agreement_scene))
     if args.proxy_variant:
         studies = tuple((f, k, functools.partial(proxy_loss_scene, variants=tuple(args.proxy_variant)))
                         if f == "proxy_loss" else (f, k, st) for f, k, st in studies)
@@ -1631,6 +1744,8 @@ def main(argv: list[str] | None = None) -> int:
                 report["sun_radiance_summary"] = sun_radiance_summary(report[key])
             if key == "true_labels":
                 report["true_labels_summary"] = true_labels_summary(report[key])
+            if key == "agreement_study":
+                report["agreement_summary"] = agreement_summary(report[key])
             if key == "occluder_distance":
                 report["occluder_distance_summary"] = occluder_distance_summary(report[key])
                 if args.figure:

@@ -153,7 +153,7 @@ from pathlib import Path
 import numpy as np
 from _figures import require_matplotlib
 from bench_distributed import _parse_size, upsampled
-from bench_shadows import away_from_edges
+from bench_shadows import away_from_edges, true_edge
 from scipy import ndimage
 
 import mvintrinsic
@@ -404,9 +404,7 @@ def relit_value_agreement(scene, quantities, points: np.ndarray, visibility: dic
     the smallest ``visibility`` over the views that see it is below 0.5
     (:func:`~mvintrinsic.correspondence.cross_view_value_agreement`), the pixels within one pixel of a true shadow
     edge not read."""
-    undecided = away_from_edges({s: np.zeros(np.shape(v), np.uint8) for s, v in visibility.items()}, true_lit)
-    values = {s: np.where(undecided[s] == SHADOW_LABELS["undecided"], np.nan, np.asarray(v, np.float64))
-              for s, v in visibility.items()}
+    values = {s: np.where(true_edge(true_lit[s]), np.nan, np.asarray(v, np.float64)) for s, v in visibility.items()}
     return cross_view_value_agreement(scene.views, quantities, values, points).fraction
 
 

@@ -235,13 +235,15 @@ def away_from_edges(labels: dict, true_lit: dict) -> dict:
     ``true_lit`` holds each view's true sun visibility as (H, W) bool; undecided pixels (128) are
     not read by :func:`~mvintrinsic.correspondence.cross_view_agreement`.
     """
-    out = {}
+    return {stem: np.where(true_edge(true_lit[stem]), SHADOW_LABELS["undecided"], codes).astype(np.uint8)
+            for stem, codes in labels.items()}
+
+
+def true_edge(true_lit: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels within one pixel (3x3) of an edge of the true sun visibility ``true_lit`` ((H, W) bool)."""
+    lit = np.asarray(true_lit, dtype=bool)
     square = np.ones((3, 3), dtype=bool)
-    for stem, codes in labels.items():
-        lit = np.asarray(true_lit[stem], dtype=bool)
-        edge = ndimage.binary_dilation(lit, square) & ndimage.binary_dilation(~lit, square)
-        out[stem] = np.where(edge, SHADOW_LABELS["undecided"], codes).astype(np.uint8)
-    return out
+    return ndimage.binary_dilation(lit, square) & ndimage.binary_dilation(~lit, square)
 
 
 def agreement_scene(folder: Path, multiview: MultiViewShadowConfig) -> dict:

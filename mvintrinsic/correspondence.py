@@ -375,28 +375,17 @@ def cross_view_agreement(
     Agreement
     """
     ordered = _check_views(views, quantities)
+    _check_layers(ordered, labels, "labels")
+    values = {}
     for view in ordered:
-        if view.stem not in labels:
-            raise ValueError(f"labels: no labelling for view {view.stem!r}")
-        if np.shape(labels[view.stem]) != view.shape:
-            raise ValueError(f"labels[{view.stem!r}] has shape {np.shape(labels[view.stem])}, the view is {view.shape}")
-    flat = _seen_pixels(ordered, quantities, points, depth_tolerance, photo_tolerance, blur)
-    read = np.full(flat.shape, -1, dtype=np.int8)
-    for i, view in enumerate(ordered):
         label = np.asarray(labels[view.stem])
         if label.dtype == bool:
-            code = label.astype(np.int8)
+            values[view.stem] = label.astype(np.float64)
         else:
-            code = np.select([label == SHADOW_LABELS["lit"], label == SHADOW_LABELS["shadow"]], [1, 0], -1)
-        seen = flat[i] >= 0
-        read[i, seen] = code.ravel()[flat[i, seen]]
-    count = (read >= 0).sum(axis=0)
-    high = np.where(read >= 0, read, 0).sum(axis=0)
-    seen_twice = count >= 2
-    same = (high == 0) | (high == count)
-    total = int(seen_twice.sum())
-    return Agreement(fraction=float(same[seen_twice].mean()) if total else None, points=total,
-                     points_tested=flat.shape[1])
+            values[view.stem] = np.select([label == SHADOW_LABELS["lit"], label == SHADOW_LABELS["shadow"]],
+                                          [1.0, 0.0], np.nan)
+    # On values 0 and 1 "within less than 1 of each other" is "the same label".
+    return _value_agreement(ordered, quantities, values, points, 1.0, depth_tolerance, photo_tolerance, blur)
 
 
 def cross_view_value_agreement(
@@ -442,11 +431,24 @@ def cross_view_value_agreement(
     if not is_real(tolerance) or not 0.0 < tolerance <= 1.0:
         raise ValueError(f"tolerance must be a number in (0, 1], got {tolerance!r}")
     ordered = _check_views(views, quantities)
+    _check_layers(ordered, values, "values")
+    return _value_agreement(ordered, quantities, values, points, float(tolerance), depth_tolerance, photo_tolerance,
+                            blur)
+
+
+def _check_layers(ordered: Sequence[View], layers: Mapping[str, np.ndarray], name: str) -> None:
+    """ValueError naming ``name`` unless ``layers`` holds an (H, W) array for every view."""
     for view in ordered:
-        if view.stem not in values:
-            raise ValueError(f"values: no layer for view {view.stem!r}")
-        if np.shape(values[view.stem]) != view.shape:
-            raise ValueError(f"values[{view.stem!r}] has shape {np.shape(values[view.stem])}, the view is {view.shape}")
+        if view.stem not in layers:
+            raise ValueError(f"{name}: no layer for view {view.stem!r}")
+        if np.shape(layers[view.stem]) != view.shape:
+            raise ValueError(f"{name}[{view.stem!r}] has shape {np.shape(layers[view.stem])}, the view is {view.shape}")
+
+
+def _value_agreement(ordered: Sequence[View], quantities: Mapping[str, PixelQuantities],
+                     values: Mapping[str, np.ndarray], points: object, tolerance: float, depth_tolerance: object,
+                     photo_tolerance: object, blur: object) -> Agreement:
+    """:func:`cross_view_value_agreement` on checked views and layers (NaN: not read)."""
     flat = _seen_pixels(ordered, quantities, points, depth_tolerance, photo_tolerance, blur)
     read = np.full(flat.shape, np.nan)
     for i, view in enumerate(ordered):
